@@ -1,0 +1,52 @@
+"""Garment catalog: list, detail, template glb."""
+from __future__ import annotations
+
+from fastapi import APIRouter, Path, Request
+from fastapi.responses import FileResponse
+
+from service.errors import ProblemException
+from service.schemas import ID_PATTERN, GarmentDetail, GarmentListResponse, GarmentSummary
+
+router = APIRouter(prefix="/v1/garments", tags=["garments"])
+_NOT_FOUND = {404: {"description": "unknown garment", "content": {"application/problem+json": {}}}}
+
+
+def _summary(g) -> dict:
+    return dict(
+        id=g.id, name=g.name, category=g.category, layer=int(g.layer), vertices=int(len(g.template)),
+        faces=int(len(g.faces)), template_url=f"/v1/garments/{g.id}/template.glb",
+    )
+
+
+def _get(request: Request, garment_id: str):
+    catalog = request.app.state.runtime.catalog
+    if garment_id not in catalog.ids():
+        raise ProblemException(404, "Not found", f"no garment {garment_id!r}; see GET /v1/garments")
+    return catalog.get(garment_id)
+
+
+@router.get("", response_model=GarmentListResponse)
+def list_garments(request: Request) -> GarmentListResponse:
+    catalog = request.app.state.runtime.catalog
+    return GarmentListResponse(garments=[GarmentSummary(**_summary(catalog.get(i))) for i in catalog.ids()])
+
+
+@router.get("/{garment_id}", response_model=GarmentDetail, responses=_NOT_FOUND)
+def get_garment(request: Request, garment_id: str = Path(pattern=ID_PATTERN)) -> GarmentDetail:
+    g = _get(request, garment_id)
+    return GarmentDetail(
+        **_summary(g),
+        material={k: float(v) for k, v in g.material.items()},
+        source=str(g.metadata.get("source", "")),
+        licence=str(g.metadata.get("licence", "")),
+    )
+
+
+@router.get(
+    "/{garment_id}/template.glb",
+    response_class=FileResponse,
+    responses={200: {"content": {"model/gltf-binary": {}}, "description": "the garment template on the neutral body, Y-up metres"}, **_NOT_FOUND},
+)
+def get_garment_template(request: Request, garment_id: str = Path(pattern=ID_PATTERN)):
+    g = _get(request, garment_id)
+    return FileResponse(g.directory / "template.glb", media_type="model/gltf-binary")

@@ -1,0 +1,170 @@
+"""Request and response models (pydantic v2), layered by direction: ``XRequest`` / ``XResponse``."""
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+from annotated_types import Len
+from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+
+from inference.body import PHENOTYPE_RANGES
+
+ID_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
+NUM_BONES = 31
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _phenotype(name: str, default: float, description: str):
+    lo, hi = PHENOTYPE_RANGES[name]
+    return Field(default, ge=lo, le=hi, allow_inf_nan=False, description=f"{description} [{lo}, {hi}]")
+
+
+class Phenotypes(_Strict):
+    """The 6 anny phenotypes (adults only: age 0.77 is 18 years, 1.0 is 110)."""
+
+    gender: float = _phenotype("gender", 0.5, "0 male, 1 female")
+    age: float = _phenotype("age", 0.8, "anny age; 0.77 = 18 y, 0.8 = ~41 y, 1.0 = 110 y")
+    muscle: float = _phenotype("muscle", 0.5, "0 min, 1 max muscle")
+    weight: float = _phenotype("weight", 0.5, "0 min, 1 max weight")
+    height: float = _phenotype("height", 0.5, "0 min, 1 max height")
+    proportions: float = _phenotype("proportions", 0.5, "0 ideal, 1 uncommon proportions")
+
+
+class BodySpec(_Strict):
+    phenotypes: Phenotypes = Field(default_factory=Phenotypes)
+
+
+class ClipMotion(_Strict):
+    """A bundled motion clip (see GET /v1/motions), retargeted to the requested body."""
+
+    type: Literal["clip"] = "clip"
+    clip: str = Field(pattern=ID_PATTERN, examples=["walk"])
+    start_s: float = Field(0.0, ge=0.0, le=3600.0, allow_inf_nan=False, description="start time in the clip, seconds")
+    duration_s: float | None = Field(None, gt=0.0, le=3600.0, allow_inf_nan=False, description="seconds to drape (default: to the end, within max_frames)")
+
+
+Vec3 = Annotated[list[FiniteFloat], Len(3, 3)]
+
+
+class PoseMotion(_Strict):
+    """An explicit pose sequence in the body model's pose contract (GET /v1/body-model)."""
+
+    type: Literal["poses"] = "poses"
+    fps: float = Field(30.0, gt=0.0, le=240.0, allow_inf_nan=False)
+    rotations: Annotated[list[Annotated[list[Vec3], Len(NUM_BONES, NUM_BONES)]], Len(1, 20_000)] = Field(
+        description="(T, 31, 3) axis-angle per bone, radians, relative to the bone's rest orientation in its rest frame"
+    )
+    translation: Annotated[list[Vec3], Len(1, 20_000)] = Field(description="(T, 3) root displacement from rest, metres, Z-up")
+
+
+class BvhMotion(_Strict):
+    """A BVH file (CMU MotionBuilder, CMU 3ds Max or Mixamo joint names), retargeted onto the body."""
+
+    type: Literal["bvh"] = "bvh"
+    bvh: str = Field(min_length=1, max_length=4 * 1024 * 1024, description="the BVH text")
+    units: Literal["auto", "metres", "centimetres", "inches", "cmu"] = Field("auto", description="BVH length unit")
+
+
+Motion = Annotated[Union[ClipMotion, PoseMotion, BvhMotion], Field(discriminator="type")]
+
+
+class GarmentSpec(_Strict):
+    id: str = Field(pattern=ID_PATTERN, examples=["tshirt"])
+
+
+class DrapeOptions(_Strict):
+    fps: float = Field(30.0, ge=1.0, le=120.0, allow_inf_nan=False, description="output frame rate")
+    include_body: bool = Field(True, description="add the posed body to the output")
+    fit: Literal["retarget", "none"] = Field(
+        "retarget", description="garment fit to the body shape: .mhclo retarget baseline, or none (plain LBS of the neutral template)"
+    )
+    dynamics: Literal["none"] = Field("none", description="dynamic wrinkles (learned models come in a later version)")
+    guard: bool = Field(True, description="push garment vertices out of the body after skinning")
+    margin_m: float = Field(0.002, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")
+    layer_gap_m: float = Field(0.003, ge=0.0, le=0.02, allow_inf_nan=False, description="extra margin per garment layer, metres")
+
+
+class DrapeRequest(_Strict):
+    body: BodySpec = Field(default_factory=BodySpec)
+    motion: Motion
+    garments: Annotated[list[GarmentSpec], Len(1, 8)] = Field(description="garments, innermost first (layer order)")
+    format: Literal["glb", "npz"] = "glb"
+    options: DrapeOptions = Field(default_factory=DrapeOptions)
+
+
+DRAPE_EXAMPLE = {
+    "body": {"phenotypes": {"gender": 0.5, "age": 0.8, "muscle": 0.5, "weight": 0.5, "height": 0.5, "proportions": 0.5}},
+    "motion": {"type": "clip", "clip": "walk", "duration_s": 2.0},
+    "garments": [{"id": "tshirt"}],
+    "format": "glb",
+    "options": {"fps": 30, "include_body": True},
+}
+
+
+# ------------------------------------------------------------------ responses
+class GarmentSummary(BaseModel):
+    id: str
+    name: str
+    category: str
+    layer: int
+    vertices: int
+    faces: int
+    template_url: str
+
+
+class GarmentDetail(GarmentSummary):
+    material: dict[str, float]
+    source: str
+    licence: str
+
+
+class GarmentListResponse(BaseModel):
+    garments: list[GarmentSummary]
+
+
+class MotionSummary(BaseModel):
+    id: str
+    title: str
+    frames: int
+    fps: float
+    duration_s: float
+    test_only: bool
+    description: str
+
+
+class MotionListResponse(BaseModel):
+    motions: list[MotionSummary]
+    acknowledgement: str
+
+
+class PhenotypeInfo(BaseModel):
+    name: str
+    min: float
+    max: float
+    default: float
+
+
+class BodyModelResponse(BaseModel):
+    name: str
+    units: str
+    axes: str
+    bones: list[str]
+    parents: list[int]
+    rest_bone_heads: list[list[float]] = Field(description="(31, 3) neutral body bone heads, metres")
+    rest_bone_tails: list[list[float]] = Field(description="(31, 3) neutral body bone tails, metres")
+    phenotypes: list[PhenotypeInfo]
+    pose_format: str
+    vertices: int
+    faces: int
+
+
+class HealthResponse(BaseModel):
+    status: str
+
+
+class ReadyResponse(BaseModel):
+    status: str
+    garments: int
+    motions: int
