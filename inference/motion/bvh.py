@@ -40,6 +40,16 @@ _UNIT_TABLE = (
 )
 
 
+# Unit names a client may give (service schema BvhMotion.units) -> metres per unit; None infers.
+BVH_UNITS: dict[str, float | None] = {
+    "auto": None,
+    "metres": 1.0,
+    "centimetres": 0.01,
+    "inches": 0.0254,
+    "cmu": CMU_UNIT_M,
+}
+
+
 class _Tokens:
     """Whitespace tokens with their 1-based line numbers, for error messages."""
 

@@ -13,7 +13,7 @@ is the same frame at frame t. The world-space rotation change of joint j is
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -75,6 +75,13 @@ class SourceMotion:
 
     def index(self, name: str) -> int:
         return self.names.index(name)
+
+    def frames(self, start: int, stop: int | None = None) -> "SourceMotion":
+        """The same motion restricted to frames [start, stop)."""
+        sl = slice(start, stop)
+        if len(range(*sl.indices(self.num_frames))) == 0:
+            raise ValueError(f"frames [{start}, {stop}) select nothing of {self.num_frames}")
+        return replace(self, world_rotations=self.world_rotations[sl], root_positions=self.root_positions[sl])
 
     def rotation_deltas(self) -> np.ndarray:
         """(T, J, 3, 3) world rotation change from rest, dR_j(t) = R_j(t) R_j(rest)^T."""
