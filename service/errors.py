@@ -14,6 +14,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from inference.errors import InferenceInputError, UnknownAssetError
+from inference.motion.skeleton import MotionFormatError
 
 log = logging.getLogger(__name__)
 
@@ -62,11 +63,16 @@ def install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(UnknownAssetError)
     async def _unknown(request: Request, exc: UnknownAssetError):
-        return problem_response(422, "Unknown asset", str(exc), request.url.path, [{"pointer": exc.field, "detail": exc.detail}])
+        pointer = {"motion.clip": "/body/motion/clip"}.get(exc.field, exc.field)
+        return problem_response(422, "Unknown asset", str(exc), request.url.path, [{"pointer": pointer, "detail": exc.detail}])
 
     @app.exception_handler(InferenceInputError)
     async def _inference_input(request: Request, exc: InferenceInputError):
         return problem_response(422, "Invalid input", str(exc), request.url.path, [{"pointer": exc.field, "detail": exc.detail}])
+
+    @app.exception_handler(MotionFormatError)
+    async def _motion_format(request: Request, exc: MotionFormatError):
+        return problem_response(422, "Malformed motion", str(exc)[:1000], request.url.path, [{"pointer": "/body/motion", "detail": str(exc)[:1000]}])
 
     @app.exception_handler(ProblemException)
     async def _problem(request: Request, exc: ProblemException):

@@ -1,0 +1,191 @@
+"""The drape pipeline: shape -> fit -> dynamics -> skin -> guard -> layers -> export.
+
+Thesis eq. 4.2-4.3: T_c(beta, theta) = T_bar_c + R_G(beta) + R_L(beta, gamma_1..t), then
+M_c = W(T_c, beta, theta, W_c), then the collision post-process of ch. 4.2.1. Each stage is a
+function over batched float32 arrays; the learned models (fit MLP, wrinkle GRU, ONNX) replace
+``fit_garment`` / ``garment_dynamics`` without reshaping the pipeline.
+
+Units: metres, seconds, radians; Z-up world axes (the glb writer converts to Y-up).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blend_skinning
+from inference.errors import InputShapeError, InputValueError
+from inference.garment import GarmentAsset
+from inference.guard import LayerPlans, guard_layers
+
+FitMode = Literal["retarget", "none"]
+
+
+@dataclass(frozen=True)
+class DrapeOptions:
+    """fit: 'retarget' (the .mhclo binding on the body shape + the template's collision
+    correction) or 'none' (plain LBS of the neutral template). margin_m: guard margin to the
+    body; layer_gap_m: extra margin per layer above the innermost."""
+
+    fit: FitMode = "retarget"
+    dynamics: Literal["none"] = "none"
+    guard: bool = True
+    margin_m: float = 0.002
+    layer_gap_m: float = 0.003
+    include_body: bool = True
+
+
+@dataclass(frozen=True)
+class PoseSequence:
+    """A motion in the body model's pose contract (inference/body.py).
+
+    rotations   : (T, J, 3) float32 axis-angle, radians
+    translation : (T, 3) float32 metres
+    fps         : frames per second
+    """
+
+    rotations: np.ndarray
+    translation: np.ndarray
+    fps: float
+
+    def __post_init__(self):
+        if self.rotations.ndim != 3 or self.rotations.shape[-1] != 3:
+            raise InputShapeError("motion.rotations", "(T, J, 3)", self.rotations.shape)
+        if self.translation.shape != (self.rotations.shape[0], 3):
+            raise InputShapeError("motion.translation", f"({self.rotations.shape[0]}, 3)", self.translation.shape)
+        if not (np.isfinite(self.rotations).all() and np.isfinite(self.translation).all()):
+            raise InputValueError("motion", "rotations and translation must be finite")
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise InputValueError("motion.fps", f"must be a positive number, got {self.fps}")
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rotations.shape[0])
+
+
+@dataclass
+class DrapedGarment:
+    """One garment's result: posed vertices (T, V, 3) float32, Z-up metres, and its asset."""
+
+    asset: GarmentAsset
+    vertices: np.ndarray
+
+
+@dataclass
+class DrapeResult:
+    garments: list[DrapedGarment]
+    shape: BodyShape
+    bone_poses: np.ndarray  # (T, J, 4, 4)
+    body_vertices: np.ndarray | None  # (T, Vb, 3) posed body when computed
+    fps: float
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class _Timer:
+    def __init__(self):
+        self.ms: dict[str, float] = {}
+
+    def __call__(self, name: str):
+        timer = self
+
+        class _Span:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                timer.ms[name] = timer.ms.get(name, 0.0) + (time.perf_counter() - self.t0) * 1e3
+
+        return _Span()
+
+
+# ---------------------------------------------------------------------- stages
+def fit_garment(garment: GarmentAsset, hm08_vertices: np.ndarray, mode: FitMode) -> np.ndarray:
+    """Unposed garment on the body shape, T_bar_c + R_G(beta) (eq. 4.2 without R_L).
+
+    hm08_vertices : (B, 19158, 3) shaped rest body in hm08 order
+    returns       : (B, V, 3) float32 metres, in the shaped body's rest pose
+                    ('none': the neutral template, unchanged)
+    """
+    if mode == "retarget":
+        return garment.retarget_fit(hm08_vertices).astype(np.float32)
+    return np.broadcast_to(garment.template, (len(hm08_vertices),) + garment.template.shape).astype(np.float32)
+
+
+def garment_dynamics(unposed: np.ndarray, num_frames: int) -> np.ndarray:
+    """R_L(beta, gamma_1..t) of eq. 4.2: per-frame unposed displacements (B, T, V, 3).
+
+    No dynamics model in this version: zero displacements, so the per-frame unposed garment is the
+    fitted one (the learned wrinkle GRU replaces this stage).
+    """
+    return np.broadcast_to(unposed[:, None], (unposed.shape[0], num_frames) + unposed.shape[1:])
+
+
+def neutral_relative_transforms(transforms: np.ndarray, shape: BodyShape, neutral: BodyShape) -> np.ndarray:
+    """Skinning transforms from the *neutral* rest pose to the posed shaped body: T P_s P_n^-1.
+
+    Used by fit='none', where the garment stays the neutral template (plain LBS baseline).
+    transforms : (B, T, J, 4, 4); returns the same shape
+    """
+    rel = shape.rest_bone_poses.astype(np.float64) @ np.linalg.inv(neutral.rest_bone_poses.astype(np.float64))
+    return (transforms.astype(np.float64) @ rel[:, None]).astype(np.float32)
+
+
+def drape(
+    body: BodyModel,
+    shape: BodyShape,
+    motion: PoseSequence,
+    garments: list[GarmentAsset],
+    options: DrapeOptions = DrapeOptions(),
+    neutral: BodyShape | None = None,
+) -> DrapeResult:
+    """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
+    (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none')."""
+    timer = _Timer()
+    if shape.rest_vertices.shape[0] != 1:
+        raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
+    if motion.rotations.shape[1] != body.num_bones:
+        raise InputShapeError("motion.rotations", f"(T, {body.num_bones}, 3)", motion.rotations.shape)
+
+    with timer("shape"):
+        hm08 = body.hm08_vertices(shape)
+    with timer("pose"):
+        bone_poses, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
+    body_vertices = None  # the posed body, needed by the guard (exporters pose it themselves)
+    if options.guard:
+        with timer("body_skin"):
+            body_vertices = body.skin(shape.rest_vertices, transforms)  # (1, T, Vb, 3)
+
+    garment_transforms = transforms
+    if options.fit == "none":
+        if neutral is None:
+            neutral = body.shape(NEUTRAL_PHENOTYPES[None])
+        garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
+
+    unposed_fits, posed = [], []
+    for g in garments:
+        with timer("fit"):
+            unposed = fit_garment(g, hm08, options.fit)
+        with timer("dynamics"):
+            unposed_t = garment_dynamics(unposed, motion.num_frames)
+        with timer("skin"):
+            posed.append(linear_blend_skinning(unposed_t, g.skin_weights, garment_transforms))
+        unposed_fits.append(unposed)
+
+    if options.guard:
+        with timer("guard"):
+            # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
+            # against the neutral body, the pose its skinning transforms start from).
+            rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
+            plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces)
+            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m)
+
+    return DrapeResult(
+        garments=[DrapedGarment(asset=g, vertices=p[0]) for g, p in zip(garments, posed)],
+        shape=shape,
+        bone_poses=bone_poses[0],
+        body_vertices=None if body_vertices is None else body_vertices[0],
+        fps=motion.fps,
+        timings_ms=timer.ms,
+    )

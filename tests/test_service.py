@@ -1,0 +1,191 @@
+"""The HTTP API end to end: catalog routes, drape to glb (validated) and npz, problem+json errors."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from tests.conftest import validate_glb
+
+WALK_TSHIRT = {
+    "body": {"phenotypes": {"gender": 0.5, "age": 0.8, "muscle": 0.5, "weight": 0.5, "height": 0.5, "proportions": 0.5}},
+    "motion": {"type": "clip", "clip": "walk", "duration_s": 1.0},
+    "garments": [{"id": "tshirt"}],
+}
+
+
+def _problem(r, status, pointer_prefix=None):
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith("application/problem+json")
+    body = r.json()
+    assert body["status"] == status and body["title"] and body["detail"]
+    assert "Traceback" not in r.text
+    if pointer_prefix is not None:
+        pointers = [e["pointer"] for e in body.get("errors", [])]
+        assert any(p.startswith(pointer_prefix) for p in pointers), pointers
+    return body
+
+
+def test_health_and_ready(client):
+    assert client.get("/healthz").json() == {"status": "ok"}
+    ready = client.get("/readyz").json()
+    assert ready["status"] == "ready" and ready["garments"] >= 5 and ready["motions"] >= 7
+
+
+def test_catalog_routes(client):
+    garments = client.get("/v1/garments").json()["garments"]
+    ids = {g["id"] for g in garments}
+    assert {"tshirt", "longsleeve", "trousers", "dress", "jacket"} <= ids
+    detail = client.get("/v1/garments/tshirt").json()
+    assert detail["material"]["density"] == pytest.approx(426.0)
+    r = client.get("/v1/garments/tshirt/template.glb")
+    assert r.status_code == 200 and r.content[:4] == b"glTF"
+    _problem(client.get("/v1/garments/nope"), 404)
+
+
+def test_body_model_and_motions(client):
+    bm = client.get("/v1/body-model").json()
+    assert len(bm["bones"]) == 31 and bm["bones"][0] == "Hips" and bm["parents"][0] == -1
+    assert {p["name"] for p in bm["phenotypes"]} == {"gender", "age", "muscle", "weight", "height", "proportions"}
+    motions = client.get("/v1/motions").json()
+    ids = {m["id"] for m in motions["motions"]}
+    assert {"walk", "run", "jump", "dance", "a_pose", "turntable", "01_01"} <= ids
+    assert "mocap.cs.cmu.edu" in motions["acknowledgement"]
+
+
+def test_drape_glb_passes_validator(client, tmp_path):
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "glb"})
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "model/gltf-binary"
+    assert int(r.headers["x-frames"]) == 31
+    path = tmp_path / "walk.glb"
+    path.write_bytes(r.content)
+    report = validate_glb(path)
+    assert report["issues"]["numErrors"] == 0, report["issues"]["messages"][:5]
+
+
+def test_drape_npz_arrays(client):
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz"})
+    assert r.status_code == 200, r.text
+    data = np.load(io.BytesIO(r.content), allow_pickle=False)
+    v = data["garment_0_vertices"]
+    assert v.dtype == np.float32 and v.ndim == 3 and v.shape[0] == 31 and v.shape[2] == 3
+    assert np.isfinite(v).all()
+    assert data["garment_0_faces"].max() < v.shape[1]
+    assert data["body_vertices"].shape[0] == 31
+    assert float(data["fps"]) == 30.0
+    import json
+
+    meta = json.loads(str(data["metadata"]))
+    assert meta["garments"] == ["tshirt"] and "metres" in meta["units"]
+    # the garment moves over time (walk) and follows the body
+    assert np.abs(v[-1] - v[0]).max() > 0.05
+
+
+def test_drape_changes_with_shape(client):
+    def verts(ph):
+        r = client.post("/v1/drape", json={**WALK_TSHIRT, "body": {"phenotypes": ph}, "format": "npz", "options": {"include_body": False}})
+        assert r.status_code == 200, r.text
+        return np.load(io.BytesIO(r.content), allow_pickle=False)["garment_0_vertices"]
+
+    small = verts({"weight": 0.0, "height": 0.0})
+    large = verts({"weight": 1.0, "height": 1.0})
+    assert small.shape == large.shape
+    extent = lambda v: v[0].max(0) - v[0].min(0)  # noqa: E731
+    assert (extent(large) > extent(small)).all()
+
+
+def test_pose_sequence_and_bvh_motions(client):
+    rot = np.zeros((5, 31, 3))
+    rot[:, 10, 2] = np.linspace(0, 0.5, 5)  # LeftArm
+    body = {"motion": {"type": "poses", "fps": 30, "rotations": rot.tolist(), "translation": np.zeros((5, 3)).tolist()},
+            "garments": [{"id": "tshirt"}], "format": "npz"}
+    r = client.post("/v1/drape", json=body)
+    assert r.status_code == 200, r.text
+    bvh = """HIERARCHY
+ROOT Hips
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT LeftUpLeg
+  {
+    OFFSET 10 -5 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    JOINT LeftLeg
+    {
+      OFFSET 0 -45 0
+      CHANNELS 3 Zrotation Xrotation Yrotation
+      End Site
+      {
+        OFFSET 0 -45 0
+      }
+    }
+  }
+  JOINT RightUpLeg
+  {
+    OFFSET -10 -5 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    JOINT RightLeg
+    {
+      OFFSET 0 -45 0
+      CHANNELS 3 Zrotation Xrotation Yrotation
+      End Site
+      {
+        OFFSET 0 -45 0
+      }
+    }
+  }
+  JOINT Spine
+  {
+    OFFSET 0 10 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 50 0
+    }
+  }
+}
+MOTION
+Frames: 3
+Frame Time: 0.0333333
+0 95 0 0 0 0 0 10 0 0 -20 0 0 0 0 0 0 0 0 0 0
+0 95 1 0 0 0 0 20 0 0 -30 0 0 0 0 0 0 0 0 0 0
+0 95 2 0 0 0 0 30 0 0 -40 0 0 0 0 0 0 0 0 0 0
+"""
+    r = client.post("/v1/drape", json={"motion": {"type": "bvh", "bvh": bvh, "units": "centimetres"}, "garments": [{"id": "trousers"}], "format": "npz"})
+    assert r.status_code == 200, r.text
+
+
+@pytest.mark.parametrize(
+    "patch, status, pointer",
+    [
+        ({"garments": [{"id": "nope"}]}, 422, "/body/garments/0"),
+        ({"garments": []}, 422, "/body/garments"),
+        ({"body": {"phenotypes": {"age": 0.5}}}, 422, "/body/body/phenotypes/age"),
+        ({"body": {"phenotypes": {"weight": 1.5}}}, 422, "/body/body/phenotypes/weight"),
+        ({"motion": {"type": "clip", "clip": "nope"}}, 422, "/body/motion"),
+        ({"motion": {"type": "clip", "clip": "walk", "duration_s": 60}}, 422, "/body/motion"),
+        ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 30], "translation": [[0, 0, 0]]}}, 422, "/body/motion"),
+        ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 31] * 2, "translation": [[0, 0, 0]]}}, 422, "/body/motion/translation"),
+        ({"motion": {"type": "bvh", "bvh": "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0"}}, 422, "/body/motion"),
+        ({"format": "obj"}, 422, "/body/format"),
+        ({"extra": 1}, 422, "/body/extra"),
+    ],
+)
+def test_bad_input_gets_problem_json(client, patch, status, pointer):
+    _problem(client.post("/v1/drape", json={**WALK_TSHIRT, **patch}), status, pointer)
+
+
+def test_nan_and_inf_are_rejected(client):
+    body = '{"motion": {"type": "poses", "rotations": [' + ",".join(["[NaN, 0, 0]"] * 31).join("[]") + '], "translation": [[0, 0, Infinity]]}, "garments": [{"id": "tshirt"}]}'
+    _problem(client.post("/v1/drape", content=body, headers={"content-type": "application/json"}), 422, "/body/motion")
+
+
+def test_oversized_body_is_413(client, settings):
+    big = b'{"x": "' + b"a" * (settings.max_request_bytes + 10) + b'"}'
+    _problem(client.post("/v1/drape", content=big, headers={"content-type": "application/json"}), 413)
+
+
+def test_malformed_json_is_422(client):
+    _problem(client.post("/v1/drape", content=b"{not json", headers={"content-type": "application/json"}), 422)
