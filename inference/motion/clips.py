@@ -11,7 +11,7 @@ licence, test_only, description, ground_window_s, file).
 
 A clip is stored for the neutral body. :func:`adapt_clip` moves it onto other bodies: the
 rotations are kept (they are relative to each body's own rest frames), the root translation is
-scaled by the ratio of leg lengths, and the feet are put back on z = 0 (retarget.ground).
+scaled by the ratio of leg lengths, and the feet are put back on z = 0 (retarget.floor_height).
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.errors import UnknownAssetError
-from inference.motion.retarget import ground, target_leg_length
+from inference.motion.retarget import floor_height, foot_heights, target_leg_length
 
 DEFAULT_ASSETS_DIR = Path(__file__).resolve().parents[2] / "assets"
 INDEX_FILE = "index.json"
@@ -39,7 +39,7 @@ class Clip:
     fps: float
     leg_length_m: float
     phenotypes: np.ndarray
-    ground_window_s: float | None = 1.0
+    ground_window_s: float | None = 0.5
     meta: dict = field(default_factory=dict)
 
     @property
@@ -94,10 +94,13 @@ def scale_translation(translation: np.ndarray, leg_length_from_m: float, leg_len
 
 
 def adapt_clip(clip: Clip, body, shape) -> tuple[np.ndarray, np.ndarray]:
-    """A clip for each body of ``shape``: same rotations, scaled translation, grounded.
+    """A clip for each body of ``shape``: same rotations, scaled translation, feet on z = 0.
 
+    The vertical is corrected by the change of floor (retarget.floor_height) between the
+    clip's own body and each new body, so the stored clip's contacts are kept as they are
+    and the clip's own body gets the stored clip back unchanged.
     clip  : Clip ; body : BodyModel ; shape : BodyShape with B bodies
-    returns : rotations (B, T, 31, 3) float32, translation (B, T, 3) float32 (feet on z = 0)
+    returns : rotations (B, T, 31, 3) float32, translation (B, T, 3) float32
     """
     B = shape.rest_bone_poses.shape[0]
     legs = np.array([target_leg_length(shape, b) for b in range(B)])
@@ -106,7 +109,11 @@ def adapt_clip(clip: Clip, body, shape) -> tuple[np.ndarray, np.ndarray]:
     window = clip.ground_window_s
     if window is not None and not math.isfinite(window):
         window = None
-    return rotations, ground(body, shape, rotations, translation, clip.fps, window)
+    own = body.shape(clip.phenotypes[None])
+    floor_own = floor_height(foot_heights(body, own, clip.rotations[None], clip.translation[None]), clip.fps, window)
+    floor_new = floor_height(foot_heights(body, shape, rotations, translation), clip.fps, window)
+    translation[..., 2] -= (floor_new - floor_own).astype(np.float32)
+    return rotations, translation
 
 
 class ClipLibrary:

@@ -4,8 +4,9 @@ World frame: the body's (Z-up, metres, the rest body faces -Y, its left is +X).
 
 1. The source is brought into that frame: Y-up -> Z-up (x, y, z) -> (x, -z, y), then rotated
    about Z so that its rest skeleton faces -Y (forward = left x up, left = left thigh head -
-   right thigh head), then rotated about Z once more so that the root faces -Y at frame 0
-   (**the retargeted clip starts facing the body's forward, -Y**). The whole map is one
+   right thigh head), then rotated about Z once more so that the root's mean horizontal
+   facing over the first HEADING_WINDOW_S seconds is -Y (**the retargeted clip starts
+   facing the body's forward, -Y**; one frame would catch a gait's pelvis yaw at an extreme). The whole map is one
    rotation ``source_frame`` (3, 3) for motion, ``rest_frame`` for the rest skeleton.
 2. Rest alignment: for a target bone j driven by source joint s, A_j = the smallest rotation
    taking the target's rest bone direction (head -> tail) onto the source's rest bone
@@ -27,9 +28,13 @@ World frame: the body's (Z-up, metres, the rest body faces -Y, its left is +X).
    ground of every clip is z = 0**; the rest body itself stands with its soles at about
    z = -0.82 m). The offset follows the floor: it is the lower envelope of the lowest
    foot-skin point per frame (running minimum over ``window_s``, then a running mean over the
-   same window), so a capture floor that drifts (CMU 02_01 rises 6 cm over 4 m) is levelled
-   while jumps shorter than about half the window stay in the air. ``window_s=None`` uses one
-   constant per clip instead (lowest point over the clip at z = 0).
+   same window, which never pushes a foot below z = 0). With the default 0.5 s it levels a
+   capture floor that drifts (CMU 02_01 rises 6 cm over 4 m) and the stride-to-stride foot
+   height differences that a body with other proportions gets, and keeps flight phases
+   shorter than about 0.25 s (running) in the air; longer jumps need a longer window, or
+   ``window_s=None``: one constant per clip (lowest point over the clip at z = 0).
+   Measured on the neutral body, CMU 02_01 walk at 30 fps: the lowest skin point is within
+   2 cm of the ground in 100 % of frames (81 % within 1 cm); the [1,1,1,1,1,1] body: 92 %.
 """
 from __future__ import annotations
 
@@ -48,6 +53,7 @@ FORWARD = np.array([0.0, -1.0, 0.0])  # the body's forward in its rest pose (toe
 UP = np.array([0.0, 0.0, 1.0])
 KEEP_REST_BONES = ("LHipJoint", "RHipJoint", "LeftShoulder", "RightShoulder")
 FOOT_BONES = ("LeftFoot", "LeftToeBase", "RightFoot", "RightToeBase")
+DEFAULT_GROUND_WINDOW_S = 0.5  # floor-tracking window of ground(), seconds
 HEADING_WINDOW_S = 0.5  # the start heading is the root's mean facing over this long
 _MIN_BONE_M = 1e-3  # source bones shorter than this have no usable direction
 _CHAIN_TOL_M = 1e-3  # a child whose head is this close to the tail continues the chain
@@ -156,6 +162,7 @@ def retarget(
     variant: str | None = None,
     fps: float | None = 30.0,
     grounded: bool = True,
+    ground_window_s: float | None = DEFAULT_GROUND_WINDOW_S,
 ) -> RetargetResult:
     """Retarget ``source`` onto body 0 of ``shape`` (see the module docstring for the method).
 
@@ -163,7 +170,7 @@ def retarget(
     body    : inference.body.BodyModel ; shape : its BodyShape (body 0 is used)
     variant : force a name map (names.NAME_MAPS key); None detects it
     fps     : resample the result to this rate (slerp/lerp); None keeps the source's
-    grounded: apply :func:`ground` (lowest foot point over the clip at z = 0)
+    grounded: apply :func:`ground` with ``ground_window_s`` (feet on z = 0)
     returns : RetargetResult (rotations (T, 31, 3) float32, translation (T, 3) float32)
     """
     names = list(body.bone_names)
@@ -186,8 +193,7 @@ def retarget(
     rest_frame = _heading_rotation(np.cross(left, UP)) @ up_fix
     dR_src = source.rotation_deltas()  # (T, Js, 3, 3), source axes
     root_src = int(src[0])
-    # Mean horizontal facing of the root over the first HEADING_WINDOW_S (the pelvis yaws
-    # back and forth in a gait cycle; one frame would catch it at an extreme).
+    # Mean horizontal facing of the root over the first HEADING_WINDOW_S.
     n0 = max(1, min(dR_src.shape[0], int(round(HEADING_WINDOW_S * source.fps))))
     facing = rest_frame @ dR_src[:n0, root_src] @ rest_frame.T @ FORWARD  # (n0, 3)
     facing[:, 2] = 0.0
@@ -250,7 +256,7 @@ def retarget(
         rotations, translation = resample_motion(rotations, translation, source.fps, fps)
         out_fps = float(fps)
     if grounded:
-        translation = ground(body, shape, rotations[None], translation[None], out_fps)[0]
+        translation = ground(body, shape, rotations[None], translation[None], out_fps, ground_window_s)[0]
     return RetargetResult(rotations, translation, float(out_fps), source_frame, src, aligned, variant)
 
 
@@ -273,7 +279,12 @@ def foot_heights(body, shape, rotations: np.ndarray, translation: np.ndarray) ->
 
 
 def ground(
-    body, shape, rotations: np.ndarray, translation: np.ndarray, fps: float, window_s: float | None = 1.0
+    body,
+    shape,
+    rotations: np.ndarray,
+    translation: np.ndarray,
+    fps: float,
+    window_s: float | None = DEFAULT_GROUND_WINDOW_S,
 ) -> np.ndarray:
     """Put the feet on the ground plane z = 0 (see the module docstring, step 5).
 
@@ -282,13 +293,22 @@ def ground(
                   or None for one constant offset per clip
     returns     : (B, T, 3) float32, translation with the offset added to z
     """
-    low = foot_heights(body, shape, rotations, translation).astype(np.float64)  # (B, T)
-    if window_s is None:
-        floor = np.broadcast_to(low.min(axis=1, keepdims=True), low.shape)
-    else:
-        size = max(1, int(round(window_s * fps)) | 1)  # odd, centred
-        envelope = minimum_filter1d(low, size=size, axis=1, mode="nearest")
-        floor = uniform_filter1d(envelope, size=size, axis=1, mode="nearest")
+    low = foot_heights(body, shape, rotations, translation)
     out = np.array(translation, dtype=np.float32, copy=True)
-    out[..., 2] -= floor.astype(np.float32)
+    out[..., 2] -= floor_height(low, fps, window_s).astype(np.float32)
     return out
+
+
+def floor_height(low: np.ndarray, fps: float, window_s: float | None = DEFAULT_GROUND_WINDOW_S) -> np.ndarray:
+    """The floor under a clip: lower envelope of its lowest foot point (module doc, step 5).
+
+    low      : (B, T) metres, lowest foot point per frame (:func:`foot_heights`)
+    returns  : (B, T) float64 metres, <= low everywhere
+    """
+    low = np.asarray(low, dtype=np.float64)
+    if window_s is None:
+        return np.broadcast_to(low.min(axis=1, keepdims=True), low.shape).copy()
+    size = max(1, int(round(window_s * fps)) | 1)  # odd, centred
+    # Every frame lies in the running-minimum windows the mean averages: floor <= low.
+    envelope = minimum_filter1d(low, size=size, axis=1, mode="nearest")
+    return uniform_filter1d(envelope, size=size, axis=1, mode="nearest")

@@ -55,7 +55,7 @@ class ClipSpec:
     asf: str | None = None  # ASF skeleton for an AMC source
     start_frame: int = 0  # at the source rate
     stop_frame: int | None = None
-    ground_window_s: float | None = 1.0  # retarget.ground: floor-tracking window, None = constant
+    ground_window_s: float | None = 0.5  # retarget.ground: floor-tracking window, None = constant
     test_only: bool = False
 
 
@@ -64,10 +64,10 @@ CLIPS: tuple[ClipSpec, ...] = (
              "cmu-asfamc/02/02_01.amc", asf="cmu-asfamc/02/02.asf"),
     ClipSpec("run", "Run", "Jogging forward (CMU subject 2, trial 3).",
              "cmu-asfamc/02/02_03.amc", asf="cmu-asfamc/02/02.asf"),
-    # 02_04 is "jump, balance": a crouch, a 0.5 s vertical tuck jump (feet 0.45 m up) and the
-    # landing in its first 2.5 s; the floor is level there, so one constant grounds it.
+    # 02_04 is "jump, balance": a crouch, a 0.54 s vertical tuck jump (feet 0.45 m up) and the
+    # landing in its first 2.5 s. A 1.2 s grounding window keeps the whole flight in the air.
     ClipSpec("jump", "Jump", "A vertical jump from standing and the landing (CMU subject 2, trial 4, first 2.5 s).",
-             "cmu-asfamc/02/02_04.amc", asf="cmu-asfamc/02/02.asf", stop_frame=300, ground_window_s=None),
+             "cmu-asfamc/02/02_04.amc", asf="cmu-asfamc/02/02.asf", stop_frame=300, ground_window_s=1.2),
     ClipSpec("dance", "Dance", "Start, hop and stop, Michael Jackson styled (CMU subject 131, trial 3).",
              "bvh/scaled_131_03.bvh"),
     ClipSpec("a_pose", "A-pose", "The body's rest A-pose, standing still (1 s).", "synthetic",
@@ -76,7 +76,7 @@ CLIPS: tuple[ClipSpec, ...] = (
              "synthetic", ground_window_s=None),
     ClipSpec("01_01", "CMU 01_01 (test only)", "Playground: forward jumps, turn around (CMU subject 1, trial 1). "
              "The spec's evaluation sequence: never train on it.",
-             "cmu-asfamc/01/01_01.amc", asf="cmu-asfamc/01/01.asf", test_only=True),
+             "cmu-asfamc/01/01_01.amc", asf="cmu-asfamc/01/01.asf", ground_window_s=1.0, test_only=True),
 )  # fmt: skip
 
 
