@@ -185,3 +185,14 @@ def test_truncated_asf():
     text = TINY_ASF.format(femur_axis_z=0, tibia_axis_z=0)
     with pytest.raises(MotionFormatError, match="not closed"):
         parse_asf(text[: text.index("  end")])
+
+
+def test_garbage_amc_is_refused_quickly():
+    import time
+
+    t0 = time.perf_counter()
+    with pytest.raises(MotionFormatError):
+        parse_amc("1\n" + "lfemur 1 2 3\n" * 10 + "x" * 4_000_000, tiny_asf())
+    with pytest.raises(MotionFormatError):
+        parse_asf("\x00" * 1_000_000)
+    assert time.perf_counter() - t0 < 2.0

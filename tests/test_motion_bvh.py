@@ -196,3 +196,18 @@ def test_frame_limit_is_checked_before_reading_frames():
 def test_motion_format_error_is_a_value_error():
     with pytest.raises(ValueError):
         parse_bvh("not a bvh")
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "x " * 2_000_000,  # 4 MB without structure
+        "HIERARCHY\nROOT a\n{\n" + "junk " * 500_000 + "\nMOTION\n",
+        GOOD.replace("Frames: 3", "Frames: 99999") + "\n" * 10,  # declared far more frames than lines
+    ],
+)
+def test_garbage_is_refused_quickly(text):
+    t0 = time.perf_counter()
+    with pytest.raises(MotionFormatError):
+        parse_bvh(text, unit_scale=0.01)
+    assert time.perf_counter() - t0 < 2.0

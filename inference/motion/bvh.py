@@ -220,7 +220,11 @@ def parse_bvh(
     if not 1e-4 <= frame_time <= 10.0:
         raise MotionFormatError(f"BVH line {line + 1}: frame time {frame_time} s out of range")
 
-    # Frame lines: exactly one frame per non-empty line, sum(channels) values each.
+    # Frame lines: exactly one frame per non-empty line, sum(channels) values each. Check the
+    # declared count against the lines there are before allocating anything for it.
+    available = len(lines) - (motion_line + 3)
+    if num_frames > available:
+        raise MotionFormatError(f"BVH: truncated, {num_frames} frames declared but only {max(available, 0)} lines follow")
     width = sum(len(c) for c in channels)
     data = np.empty((num_frames, width))
     t = 0

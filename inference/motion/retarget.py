@@ -44,7 +44,7 @@ import numpy as np
 from scipy.ndimage import minimum_filter1d, uniform_filter1d
 
 from inference import rotations as rot
-from inference.motion.names import CMU_MB_BONES, CMU_MB_PARENTS, match_names
+from inference.motion.names import CMU_MB_BONES, match_names
 from inference.motion.resample import resample_motion
 from inference.motion.skeleton import MotionFormatError, SourceMotion
 
@@ -81,10 +81,6 @@ class RetargetResult:
     variant: str
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def _heading_rotation(forward: np.ndarray, target: np.ndarray = FORWARD) -> np.ndarray:
     """Rotation about Z taking the horizontal part of ``forward`` (3,) onto ``target``."""
     a = np.arctan2(forward[1], forward[0])
@@ -92,18 +88,16 @@ def _heading_rotation(forward: np.ndarray, target: np.ndarray = FORWARD) -> np.n
     return rot.axis_angle_to_matrix(np.array([0.0, 0.0, b - a]))
 
 
-def leg_length(heads: np.ndarray, parents: np.ndarray, knees: tuple[int, int], ankles: tuple[int, int]) -> float:
+def leg_length(heads: np.ndarray, hips: tuple[int, int], knees: tuple[int, int], ankles: tuple[int, int]) -> float:
     """Metres: mean over both legs of thigh + shin length (hip->knee->ankle), pose-independent.
 
     This is the "hip height" whose ratio scales the root translation: a rest-pose height would
     depend on how far apart each skeleton's rest pose spreads the legs (CMU: 20 degrees).
-    heads   : (J, 3) rest joint positions ; parents : (J,)
-    knees   : (left, right) indices of the joints at the knees (heads of the shins)
-    ankles  : (left, right) indices of the joints at the ankles
+    heads : (J, 3) rest joint positions, metres
+    hips, knees, ankles : (left, right) indices of the joints at the hips, knees and ankles
     """
     total = 0.0
-    for knee, ankle in zip(knees, ankles):
-        hip = int(parents[knee])
+    for hip, knee, ankle in zip(hips, knees, ankles):
         total += np.linalg.norm(heads[knee] - heads[hip]) + np.linalg.norm(heads[ankle] - heads[knee])
     return float(total / 2.0)
 
@@ -112,8 +106,8 @@ def target_leg_length(shape, b: int = 0) -> float:
     """Leg length (:func:`leg_length`) of body b of a BodyShape, metres."""
     i = CMU_MB_BONES.index
     return leg_length(
-        shape.bone_heads[b].astype(np.float64), np.asarray(CMU_MB_PARENTS),
-        (i("LeftLeg"), i("RightLeg")), (i("LeftFoot"), i("RightFoot")),
+        shape.bone_heads[b].astype(np.float64),
+        (i("LeftUpLeg"), i("RightUpLeg")), (i("LeftLeg"), i("RightLeg")), (i("LeftFoot"), i("RightFoot")),
     )
 
 
@@ -239,7 +233,7 @@ def retarget(
     src_hips = 0.5 * (src_heads[:, lhip] + src_heads[:, rhip])
     knees = (int(src[names.index("LeftLeg")]), int(src[names.index("RightLeg")]))
     ankles = (int(src[names.index("LeftFoot")]), int(src[names.index("RightFoot")]))
-    source_leg = leg_length(source.rest_heads, source.parents, knees, ankles)
+    source_leg = leg_length(source.rest_heads, (lhip, rhip), knees, ankles)
     if source_leg < 0.1:
         raise MotionFormatError(f"source legs are {source_leg:.3g} m long: wrong units?")
     scale = target_leg_length(shape) / source_leg
