@@ -129,16 +129,3 @@ def _axis_rotation(a: np.ndarray, axis: str) -> np.ndarray:
     else:
         raise ValueError(f"unknown rotation axis {axis!r}")
     return np.stack(m, -1).reshape(a.shape + (3, 3))
-
-
-def forward_kinematics_rotations(parents: np.ndarray, local_rotations: np.ndarray) -> np.ndarray:
-    """World rotations from parent-relative ones: G_j = G_parent(j) @ L_j.
-
-    parents         : (J,) int, parents[j] < j, -1 for the root
-    local_rotations : (T, J, 3, 3)
-    returns         : (T, J, 3, 3)
-    """
-    G = np.empty_like(local_rotations)
-    for j, p in enumerate(parents):  # loop over joints, vectorised over frames
-        G[:, j] = local_rotations[:, j] if p < 0 else G[:, p] @ local_rotations[:, j]
-    return G
