@@ -9,8 +9,8 @@ import pytest
 from inference.motion.asfamc import load_asf_amc, parse_amc, parse_asf
 from inference.motion.skeleton import CMU_UNIT_M, MotionFormatError
 
-MOCAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
-needs_mocap = pytest.mark.skipif(not MOCAP.exists(), reason="shared/data/mocap not beside the repository")
+MOCAP = Path(__file__).resolve().parents[1] / "training" / "sources" / "mocap"
+needs_mocap = pytest.mark.skipif(not MOCAP.exists(), reason="training/sources/mocap missing")
 
 TINY_ASF = """\
 # a two-bone leg

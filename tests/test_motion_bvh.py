@@ -11,8 +11,8 @@ from scipy.spatial.transform import Rotation
 from inference.motion.bvh import infer_unit_scale, load_bvh, parse_bvh
 from inference.motion.skeleton import CMU_UNIT_M, MAX_JOINTS, MotionFormatError
 
-MOCAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
-needs_mocap = pytest.mark.skipif(not MOCAP.exists(), reason="shared/data/mocap not beside the repository")
+MOCAP = Path(__file__).resolve().parents[1] / "training" / "sources" / "mocap"
+needs_mocap = pytest.mark.skipif(not MOCAP.exists(), reason="training/sources/mocap missing")
 
 
 def make_bvh(joints, frames, frame_time=1 / 30) -> str:

@@ -18,8 +18,8 @@ from inference.motion.names import CMU_MB_BONES
 from inference.motion.retarget import FORWARD, foot_heights, retarget, target_leg_length
 from tests.test_motion_bvh import make_bvh
 
-MOCAP = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
-needs_mocap = pytest.mark.skipif(not MOCAP.exists(), reason="shared/data/mocap not beside the repository")
+MOCAP = Path(__file__).resolve().parents[1] / "training" / "sources" / "mocap"
+needs_mocap = pytest.mark.skipif(not MOCAP.exists(), reason="training/sources/mocap missing")
 
 # Adult extremes (age within [0.77, 1]).
 BODIES = {

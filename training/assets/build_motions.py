@@ -1,6 +1,6 @@
 """Convert the shared CMU mocap into the bundled clips ``assets/motions/<id>.npz`` + ``index.json``.
 
-Run: ``python -m training.assets.build_motions [--data-dir ../shared/data/mocap] [--out assets/motions]``
+Run: ``python -m training.assets.build_motions [--data-dir training/sources/mocap] [--out assets/motions]``
 
 Every clip is retargeted onto the **neutral** body (inference.body.NEUTRAL_PHENOTYPES) with
 inference.motion.retarget (bone world orientations, hip-centre path scaled by leg length,
@@ -28,7 +28,7 @@ from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-DEFAULT_DATA_DIR = REPO_ROOT.parent / "shared" / "data" / "mocap"
+DEFAULT_DATA_DIR = REPO_ROOT / "training" / "sources" / "mocap"
 DEFAULT_OUT_DIR = REPO_ROOT / "assets" / "motions"
 FPS = 30.0
 
@@ -119,7 +119,7 @@ def write_readme(out_dir: Path, entries: list[dict]) -> None:
     )
     text = f"""# Bundled motion clips
 
-Built by `python -m training.assets.build_motions` from the CMU mocap in `shared/data/mocap`
+Built by `python -m training.assets.build_motions` from the CMU mocap in `training/sources/mocap`
 (format: `inference/motion/clips.py`; method: `inference/motion/retarget.py`). Each clip is
 retargeted onto the neutral anny body (rig cmu_mb), resampled to 30 fps, its feet on z = 0.
 
@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> None:
             "frames": T,
             "fps": FPS,
             "duration_s": round((T - 1) / FPS, 4),
-            "source": spec.source if spec.source == "synthetic" else f"shared/data/mocap/{spec.source}"
+            "source": spec.source if spec.source == "synthetic" else f"training/sources/mocap/{spec.source}"
             + (f" (+ {spec.asf})" if spec.asf else "")
             + (f", source frames [{spec.start_frame}, {spec.stop_frame})" if spec.stop_frame else ""),
             "licence": OWN_LICENCE if spec.source == "synthetic" else CMU_LICENCE,
