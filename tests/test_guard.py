@@ -1,0 +1,174 @@
+"""Collision guard: hand-made pushes, squeeze limit, batch consistency, end-to-end on the posed body."""
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from inference.body import NEUTRAL_PHENOTYPES, BodyModel, linear_blend_skinning
+from inference.errors import InputShapeError, InputValueError
+from inference.guard import (
+    GuardPlan,
+    LayerPlans,
+    guard,
+    guard_layers,
+    major_components,
+    push_outside,
+    vertex_normals,
+)
+from inference.metrics import inside_mask, near_self_intersection, signed_distance
+
+MARGIN = 0.002
+
+
+def _sphere(subdivisions=3):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    return s.vertices.astype(np.float32), s.faces.astype(np.int64)
+
+
+def _knn(points, collider, k=8):
+    return cKDTree(collider).query(points, k=k)[1]
+
+
+def test_inside_point_pushed_to_exactly_margin_along_normal():
+    verts, _ = _sphere()
+    normals = verts / np.linalg.norm(verts, axis=1, keepdims=True)  # analytic normals
+    idx = np.arange(0, len(verts), 7)
+    radii = np.array([0.9, 0.999, 1.0 + MARGIN / 2, 1.0 + 2 * MARGIN, 1.1], np.float32)
+    pts = (radii[:, None, None] * normals[idx][None]).reshape(-1, 3)
+    cand = _knn(pts, verts)
+    out = push_outside(pts[None, None], verts[None, None], normals[None, None], cand, MARGIN)[0, 0]
+    r_in = np.linalg.norm(out, axis=1).reshape(len(radii), -1)
+    # inside and within the margin: exactly margin outside, along the normal (direction kept)
+    np.testing.assert_allclose(r_in[:3], 1.0 + MARGIN, atol=1e-6)
+    np.testing.assert_allclose(out.reshape(len(radii), -1, 3)[:3] / r_in[:3, :, None], np.broadcast_to(normals[idx], (3, len(idx), 3)), atol=1e-6)
+    # beyond the margin: bit-identical
+    np.testing.assert_array_equal(out.reshape(len(radii), -1, 3)[3:], pts.reshape(len(radii), -1, 3)[3:])
+
+
+def test_plane_push_keeps_tangential_coordinates():
+    g = np.stack(np.meshgrid(np.linspace(-1, 1, 21), np.linspace(-1, 1, 21)), -1).reshape(-1, 2)
+    plane = np.concatenate([g, np.zeros((len(g), 1))], 1).astype(np.float32)
+    normals = np.tile(np.float32([0, 0, 1]), (len(plane), 1))
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform(-0.9, 0.9, (200, 2)), rng.uniform(-0.05, 0.01, (200, 1))], 1).astype(np.float32)
+    out = push_outside(pts[None, None], plane[None, None], normals[None, None], _knn(pts, plane), MARGIN)[0, 0]
+    np.testing.assert_array_equal(out[:, :2], pts[:, :2])
+    np.testing.assert_allclose(out[:, 2], np.maximum(pts[:, 2], MARGIN), atol=1e-7)
+
+
+def test_squeezed_point_is_balanced_not_pushed_through():
+    """Two facing plates 3 mm apart (gap < 2 margins) and two plates overlapping by 2 mm."""
+    g = np.stack(np.meshgrid(np.linspace(-0.05, 0.05, 11), np.linspace(-0.05, 0.05, 11)), -1).reshape(-1, 2)
+    for top, p_z, expected in [(0.003, 0.0005, 0.0015), (-0.002, -0.001, -0.001)]:
+        lower = np.concatenate([g, np.zeros((len(g), 1))], 1)
+        upper = np.concatenate([g, np.full((len(g), 1), top)], 1)
+        coll = np.concatenate([lower, upper]).astype(np.float32)
+        nrm = np.concatenate([np.tile([0, 0, 1.0], (len(g), 1)), np.tile([0, 0, -1.0], (len(g), 1))]).astype(np.float32)
+        p = np.float32([[0.001, 0.002, p_z]])
+        cand = np.concatenate([_knn(p, lower, 4), len(g) + _knn(p, upper, 4)], 1)
+        across = np.array([[False] * 4 + [True] * 4])  # the upper plate is another part
+        out = push_outside(p[None, None], coll[None, None], nrm[None, None], cand, MARGIN, across=across)[0, 0, 0]
+        # gap: the point stops half-way (1.5 mm from both); overlap: inside both, it stays
+        assert out[2] == pytest.approx(expected, abs=1e-7)
+        np.testing.assert_array_equal(out[:2], p[0, :2])
+
+
+def test_open_collider_border_is_not_extrapolated():
+    """An inner garment patch that ends at x = 0: points beyond its border are left alone."""
+    g = np.stack(np.meshgrid(np.linspace(-0.1, 0.0, 11), np.linspace(-0.05, 0.05, 11)), -1).reshape(-1, 2)
+    patch = trimesh.Trimesh(np.concatenate([g, np.zeros((len(g), 1))], 1), _grid_faces(11, 11), process=False)
+    verts = patch.vertices.astype(np.float32)[None]
+    pts = np.float32([[[-0.05, 0.0, 0.001], [0.05, 0.0, 0.001]]])  # above the patch; 5 cm beyond its border
+    plan = GuardPlan.build(pts + np.float32([0, 0, 0.01]), verts, patch.faces)
+    out = guard(pts[:, None], verts[:, None], plan, MARGIN)[0, 0]
+    assert out[0, 2] == pytest.approx(MARGIN, abs=1e-6)
+    np.testing.assert_array_equal(out[1], pts[0, 1])
+
+
+def _grid_faces(nx, ny):
+    i = np.arange(nx - 1)[:, None] * ny + np.arange(ny - 1)[None]
+    i = i.ravel()
+    return np.concatenate([np.stack([i, i + ny, i + 1], 1), np.stack([i + 1, i + ny, i + ny + 1], 1)])
+
+
+def test_batch_consistency_and_plan_on_mesh():
+    verts, faces = _sphere(2)
+    rng = np.random.default_rng(1)
+    R = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(4)]).astype(np.float32)
+    coll = np.einsum("bij,vj->bvi", R, verts)[:, None]  # (4, 1, V, 3): rotated spheres
+    n = 200
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    rest = (dirs * rng.uniform(0.95, 1.01, (n, 1))).astype(np.float32)
+    pts = np.einsum("bij,nj->bni", R, rest)[:, None]
+    plan = GuardPlan.build(rest[None], verts[None], faces)
+    all4 = guard(pts, coll, plan, MARGIN)
+    one = np.concatenate([guard(pts[b : b + 1], coll[b : b + 1], plan, MARGIN) for b in range(4)])
+    np.testing.assert_allclose(all4, one, atol=1e-7)
+    assert not inside_mask(all4[:, 0], coll[:, 0], faces).any()
+    # frames on the time axis give the same result as frames on the batch axis
+    along_t = guard(pts.transpose(1, 0, 2, 3), coll.transpose(1, 0, 2, 3), plan, MARGIN)
+    np.testing.assert_allclose(along_t[0], all4[:, 0], atol=1e-7)
+
+
+def test_layers_outer_pushed_out_of_inner():
+    verts, faces = _sphere(2)
+    inner = (1.02 * verts)[None]  # a closed "garment" 2 cm outside a unit-sphere body
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    outer = (1.01 * d).astype(np.float32)[None]  # an outer layer sunk below the inner one
+    plans = LayerPlans.build([inner, (1.04 * d).astype(np.float32)[None]], [faces, np.zeros((0, 3), np.int64)], verts[None], faces)
+    g_inner, g_outer = guard_layers([inner[:, None], outer[:, None]], verts[None, None], plans, MARGIN, MARGIN)
+    # out of the convex inner layer by at least the layer margin
+    assert signed_distance(g_outer[:, 0], inner, faces).min() >= MARGIN - 1e-5
+    np.testing.assert_allclose(g_inner, inner[:, None], atol=1e-7)  # inner already clear of the body
+
+
+def test_input_validation():
+    verts, faces = _sphere(1)
+    with pytest.raises(InputShapeError):
+        push_outside(np.zeros((1, 5, 3), np.float32), verts[None, None], verts[None, None], np.zeros((5, 2), int))
+    with pytest.raises(InputValueError):
+        push_outside(np.zeros((1, 1, 5, 3), np.float32), verts[None, None], verts[None, None], np.full((5, 2), len(verts)))
+    with pytest.raises(InputValueError):
+        push_outside(np.zeros((1, 1, 5, 3), np.float32), verts[None, None], verts[None, None], np.zeros((5, 2), int), -1.0)
+
+
+# ------------------------------------------------------------------------------ real body
+@pytest.fixture(scope="module")
+def posed_body():
+    body = BodyModel.load()
+    shape = body.shape(NEUTRAL_PHENOTYPES[None])
+    J = body.num_bones
+    rng = np.random.default_rng(3)
+    rot = np.zeros((1, 3, J, 3), np.float32)
+    rot[0, 1, body.bone_names.index("LeftArm"), 2] = -1.2  # upper arm into the torso
+    upper = [body.bone_names.index(n) for n in ("Spine", "Spine1", "Neck", "LeftArm", "RightArm", "LeftForeArm", "RightForeArm")]
+    rot[0, 2, upper] = rng.normal(0.0, 0.25, (len(upper), 3))  # upper-body motion, no leg contact
+    _, transforms = body.pose(shape.rest_bone_poses, rot, np.zeros((1, 3, 3), np.float32))
+    return body, shape, transforms, body.skin(shape.rest_vertices, transforms)
+
+
+def test_end_to_end_on_posed_body(posed_body):
+    """Points 5 mm inside/outside the skin of garment-covered parts, skinned with the body."""
+    body, shape, transforms, posed = posed_body
+    F, V = body.faces, body.num_vertices
+    covered = ~np.isin(body.dense_weights.argmax(1), [body.bone_names.index(n) for n in body.bone_names if n.endswith(("Foot", "ToeBase", "Hand", "Thumb", "FingerBase", "Finger1")) or n == "Head"])
+    ids = np.random.default_rng(4).choice(np.flatnonzero(covered & major_components(F, V)), 3000, replace=False)
+    n_rest = vertex_normals(shape.rest_vertices, F)
+    offset = np.where(np.arange(len(ids)) % 2 == 0, -0.005, 0.005).astype(np.float32)[:, None]
+    rest = shape.rest_vertices[:, ids] + offset * n_rest[:, ids]
+    pts = linear_blend_skinning(rest, body.dense_weights[ids], transforms)  # (1, 3, N, 3)
+    plan = GuardPlan.build(rest, shape.rest_vertices, F)
+    out = guard(pts, posed, plan, MARGIN)
+    for t in range(posed.shape[1]):
+        before = inside_mask(pts[:, t], posed[:, t], F)[0]
+        after = inside_mask(out[:, t], posed[:, t], F)[0]
+        excluded = near_self_intersection(out[:, t], posed[:, t], F, 0.02)[0]
+        assert before.sum() > 1000
+        assert not (after & ~excluded).any(), f"frame {t}: {np.flatnonzero(after & ~excluded)} still inside"
+        sd0 = signed_distance(pts[:, t], posed[:, t], F)[0]
+        far = sd0 > MARGIN + 0.001
+        np.testing.assert_array_equal(out[0, t, far], pts[0, t, far])  # outside beyond the margin: untouched
+    assert (near_self_intersection(out[:, 1], posed[:, 1], F, 0.02)).sum() > 0  # the arm frame has a region
