@@ -127,8 +127,7 @@ class Runtime:
 
         t_export = time.perf_counter()
         metadata = {
-            "units": "metres, seconds", "axes": "glb: Y-up; npz: Z-up right-handed (anny)",
-            "garments": [g.asset.id for g in result.garments], "frames": motion.num_frames, "fps": motion.fps,
+            "frames": motion.num_frames,
             "phenotypes": dict(zip(PHENOTYPE_LABELS, map(float, shape.phenotypes[0]))),
             "model_versions": MODEL_VERSIONS, "options": o.model_dump(),
         }
@@ -144,7 +143,8 @@ class Runtime:
                 skin_weights=self.body.skin_weights, parents=self.body.parents, bone_names=self.body.bone_names,
                 rest_bone_poses=shape.rest_bone_poses[0], bone_poses=result.bone_poses, uvs=self.body.uvs, face_uvs=self.body.face_uvs,
             )
-        if request.format == "glb":
+        if request.format == "glb":  # (the npz writer records units, axes, fps and garments itself)
+            metadata.update(units="metres, seconds", axes="Y-up (glTF)", garments=[g.asset.id for g in result.garments], fps=motion.fps)
             payload = write_glb(tracks, body_track, motion.fps, metadata=metadata)
         else:
             payload = write_npz(tracks, body_track, motion.fps, metadata=metadata)

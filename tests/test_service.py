@@ -6,7 +6,7 @@ import io
 import numpy as np
 import pytest
 
-from tests.conftest import validate_glb
+from tests.conftest import REPO_ROOT, validate_glb
 
 WALK_TSHIRT = {
     "body": {"phenotypes": {"gender": 0.5, "age": 0.8, "muscle": 0.5, "weight": 0.5, "height": 0.5, "proportions": 0.5}},
@@ -38,7 +38,7 @@ def test_catalog_routes(client):
     ids = {g["id"] for g in garments}
     assert {"tshirt", "longsleeve", "trousers", "dress", "jacket"} <= ids
     detail = client.get("/v1/garments/tshirt").json()
-    assert detail["material"]["density"] == pytest.approx(426.0)
+    assert detail["material"]["density_kg_m3"] == pytest.approx(426.0)
     r = client.get("/v1/garments/tshirt/template.glb")
     assert r.status_code == 200 and r.content[:4] == b"glTF"
     _problem(client.get("/v1/garments/nope"), 404)
@@ -78,7 +78,7 @@ def test_drape_npz_arrays(client):
     import json
 
     meta = json.loads(str(data["metadata"]))
-    assert meta["garments"] == ["tshirt"] and "metres" in meta["units"]
+    assert [g["name"] for g in meta["garments"]] == ["tshirt"] and "metres" in meta["units"]
     # the garment moves over time (walk) and follows the body
     assert np.abs(v[-1] - v[0]).max() > 0.05
 
@@ -103,58 +103,16 @@ def test_pose_sequence_and_bvh_motions(client):
             "garments": [{"id": "tshirt"}], "format": "npz"}
     r = client.post("/v1/drape", json=body)
     assert r.status_code == 200, r.text
-    bvh = """HIERARCHY
-ROOT Hips
-{
-  OFFSET 0 0 0
-  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
-  JOINT LeftUpLeg
-  {
-    OFFSET 10 -5 0
-    CHANNELS 3 Zrotation Xrotation Yrotation
-    JOINT LeftLeg
-    {
-      OFFSET 0 -45 0
-      CHANNELS 3 Zrotation Xrotation Yrotation
-      End Site
-      {
-        OFFSET 0 -45 0
-      }
-    }
-  }
-  JOINT RightUpLeg
-  {
-    OFFSET -10 -5 0
-    CHANNELS 3 Zrotation Xrotation Yrotation
-    JOINT RightLeg
-    {
-      OFFSET 0 -45 0
-      CHANNELS 3 Zrotation Xrotation Yrotation
-      End Site
-      {
-        OFFSET 0 -45 0
-      }
-    }
-  }
-  JOINT Spine
-  {
-    OFFSET 0 10 0
-    CHANNELS 3 Zrotation Xrotation Yrotation
-    End Site
-    {
-      OFFSET 0 50 0
-    }
-  }
-}
-MOTION
-Frames: 3
-Frame Time: 0.0333333
-0 95 0 0 0 0 0 10 0 0 -20 0 0 0 0 0 0 0 0 0 0
-0 95 1 0 0 0 0 20 0 0 -30 0 0 0 0 0 0 0 0 0 0
-0 95 2 0 0 0 0 30 0 0 -40 0 0 0 0 0 0 0 0 0 0
-"""
-    r = client.post("/v1/drape", json={"motion": {"type": "bvh", "bvh": bvh, "units": "centimetres"}, "garments": [{"id": "trousers"}], "format": "npz"})
+    # a real CMU BVH (3ds Max joint names, metres), cut to its first 40 frames
+    text = (REPO_ROOT / "training" / "sources" / "mocap" / "bvh" / "scaled_131_01.bvh").read_text()
+    header, motion = text.split("MOTION", 1)
+    lines = motion.strip().splitlines()
+    frame_time = next(line for line in lines if line.startswith("Frame Time"))
+    data = [line for line in lines if line and line[0] in "-0123456789"][:40]
+    bvh = header + "MOTION\nFrames: 40\n" + frame_time + "\n" + "\n".join(data) + "\n"
+    r = client.post("/v1/drape", json={"motion": {"type": "bvh", "bvh": bvh}, "garments": [{"id": "trousers"}], "format": "npz"})
     assert r.status_code == 200, r.text
+    assert int(r.headers["x-frames"]) == 10  # 40 frames at 120 fps last 0.325 s -> 10 frames at 30 fps
 
 
 @pytest.mark.parametrize(
@@ -165,7 +123,7 @@ Frame Time: 0.0333333
         ({"body": {"phenotypes": {"age": 0.5}}}, 422, "/body/body/phenotypes/age"),
         ({"body": {"phenotypes": {"weight": 1.5}}}, 422, "/body/body/phenotypes/weight"),
         ({"motion": {"type": "clip", "clip": "nope"}}, 422, "/body/motion"),
-        ({"motion": {"type": "clip", "clip": "walk", "duration_s": 60}}, 422, "/body/motion"),
+        ({"motion": {"type": "clip", "clip": "dance", "duration_s": 60}}, 422, "/body/motion"),
         ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 30], "translation": [[0, 0, 0]]}}, 422, "/body/motion"),
         ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 31] * 2, "translation": [[0, 0, 0]]}}, 422, "/body/motion/translation"),
         ({"motion": {"type": "bvh", "bvh": "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0"}}, 422, "/body/motion"),
