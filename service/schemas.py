@@ -13,7 +13,7 @@ NUM_BONES = 31
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 def _phenotype(name: str, default: float, description: str):
@@ -168,3 +168,20 @@ class ReadyResponse(BaseModel):
     status: str
     garments: int
     motions: int
+
+
+class ProblemFieldError(BaseModel):
+    pointer: str = Field(description="JSON pointer into the request (/body/..., /path/..., /query/...)")
+    detail: str
+    type: str | None = None
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details."""
+
+    type: str = "about:blank"
+    title: str
+    status: int
+    detail: str
+    instance: str | None = None
+    errors: list[ProblemFieldError] | None = None

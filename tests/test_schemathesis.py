@@ -2,23 +2,18 @@
 and every response conforms to the documented schema."""
 from __future__ import annotations
 
-import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
+from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from service.app import create_app
+from service.config import Settings
 from service.runtime import Runtime
 
-
-@pytest.fixture(scope="session")
-def api_schema(runtime):
-    # Same assets, smaller frame limit so that the generated valid drapes stay cheap.
-    small = runtime.settings.model_copy(update={"max_frames": 15})
-    app = create_app(small, Runtime(small, runtime.body, runtime.catalog, runtime.clips))
-    return schemathesis.openapi.from_asgi("/openapi.json", app)
-
-
-schema = schemathesis.pytest.from_fixture("api_schema")
+# Same assets, smaller frame limit so that the generated valid drapes stay cheap.
+_SETTINGS = Settings().model_copy(update={"max_frames": 15})
+app = create_app(_SETTINGS, Runtime.load(_SETTINGS))
+schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 
 
 @schema.parametrize()
@@ -26,4 +21,6 @@ schema = schemathesis.pytest.from_fixture("api_schema")
 def test_api_never_answers_5xx(case):
     response = case.call()
     assert response.status_code < 500, response.text[:500]
-    case.validate_response(response)
+    # Semantic limits (frames after resampling, garment ids in the catalog) are not expressible in
+    # the schema, so a schema-valid request may still get a documented 422: skip that one check.
+    case.validate_response(response, excluded_checks=[positive_data_acceptance])

@@ -20,6 +20,7 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
             "description": "the animated garments (and body): glb (Y-up, metres, morph-target animation) or npz (float32 arrays, Z-up)",
             "content": {"model/gltf-binary": {}, "application/x-npz": {}},
         },
+        400: {"description": "the body is not parseable JSON", **_PROBLEM},
         413: {"description": "request body too large", **_PROBLEM},
         422: {"description": "invalid request: the problem names the field", **_PROBLEM},
         503: {"description": "busy: retry after the Retry-After seconds", **_PROBLEM},
