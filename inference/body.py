@@ -283,7 +283,7 @@ class BodyModel:
 
 
 def linear_blend_skinning(rest_vertices: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-    """LBS, thesis eq. 4.3 (skinning function W).
+    """LBS, thesis eq. 4.3 (skinning function W): v'_t = sum_j w_vj T_tj v.
 
     rest_vertices : (B, V, 3) or (B, T, V, 3) float32, metres
     weights       : (V, J) float32, rows sum to 1
@@ -292,9 +292,22 @@ def linear_blend_skinning(rest_vertices: np.ndarray, weights: np.ndarray, transf
     """
     B, T, J = transforms.shape[:3]
     V = weights.shape[0]
-    # M[b, t, v] = sum_j weights[v, j] transforms[b, t, j, :3, :]  (one BLAS product)
-    M = (transforms[..., :3, :].reshape(B * T, J, 12).transpose(1, 0, 2).reshape(J, -1))
-    M = (weights.astype(np.float32) @ M.astype(np.float32)).reshape(V, B, T, 3, 4).transpose(1, 2, 0, 3, 4)
-    v = rest_vertices if rest_vertices.ndim == 4 else rest_vertices[:, None]
-    out = np.einsum("btvij,btvj->btvi", M[..., :3], np.broadcast_to(v, (B, T, V, 3)), optimize=True)
-    return (out + M[..., 3]).astype(np.float32)
+    per_frame = rest_vertices.ndim == 4
+    out = np.empty((B, T, V, 3), np.float32)
+    w = np.ascontiguousarray(weights, np.float32)
+    step = max(1, _LBS_BLOCK // max(V, 1))
+    for b in range(B):
+        for t0 in range(0, T, step):  # blocks of frames bound the (V, frames, 12) temporary
+            t1 = min(T, t0 + step)
+            # M[v, t, i, k] = sum_j w[v, j] T[t, j, i, k]   (one BLAS product per block)
+            Tm = transforms[b, t0:t1, :, :3, :].astype(np.float32).transpose(1, 0, 2, 3).reshape(J, -1)
+            M = (w @ Tm).reshape(V, t1 - t0, 3, 4)
+            v = rest_vertices[b, t0:t1].transpose(1, 0, 2) if per_frame else rest_vertices[b][:, None, :]
+            # v'[v, t, i] = M[v, t, i, :3] . v + M[v, t, i, 3]
+            res = M[..., 3] + M[..., 0] * v[..., None, 0] + M[..., 1] * v[..., None, 1] + M[..., 2] * v[..., None, 2]
+            out[b, t0:t1] = res.transpose(1, 0, 2)
+    return out
+
+
+# Vertex-frames per block in ``linear_blend_skinning`` (~20 MB of temporaries).
+_LBS_BLOCK = 400_000

@@ -69,6 +69,22 @@ DEFAULT_LAYER_MARGIN_M = 0.002
 DEFAULT_CANDIDATES = 8
 # A candidate across a gap opposes the point's own surface by more than 120°.
 _OPPOSING_COS = -0.5
+# Skin-aware plans: points closer than this (rest pose) to a part skinned to another bone get
+# per-frame nearest candidates, searched among the collider vertices within DYNAMIC_REGION_M.
+DYNAMIC_RISK_M = 0.30
+DYNAMIC_REGION_M = 0.05
+# Per-frame nearest candidates per dynamic point.
+DYNAMIC_K = 3
+# Passes of the body guard (each re-picks the closest candidate: concave creases converge).
+GUARD_ITERATIONS = 2
+# Rest-pose candidates of a skin-aware plan (its per-frame search finds the posed nearest ones).
+SKIN_PLAN_K = 4
+# An across-the-gap candidate limits the push only while it is this close to the point, metres.
+_SQUEEZE_RADIUS_M = 0.02
+# A point behind the plane of a candidate within this tangential offset is inside that part ...
+_TANGENT_M = 0.012
+# ... if that candidate is at most this much farther than the nearest one, metres.
+_FARTHER_M = 0.02
 # Mesh components smaller than this fraction of the vertices are accessories (anny's eyes, teeth).
 MAJOR_COMPONENT_FRACTION = 0.1
 # Extra candidates are looked up this far along the rest normal (the other side of a crease).
@@ -223,9 +239,11 @@ def _push_planes(
     boundary: np.ndarray | None,
     reach_m: float,
     iterations: int,
+    extra: np.ndarray | None = None,
 ) -> np.ndarray:
     """``push_outside`` on coordinate planes: P (3, BT, N); C, Nrm (3, BT*M) frame-major;
-    candidates, across (B|1, N, k). Returns (3, BT, N) float32.
+    candidates, across (B|1, N, k); extra (BT, N, ke) per-frame candidates (never across).
+    Returns (3, BT, N) float32.
 
     Frames go through in blocks of about ``_BLOCK_ELEMENTS`` candidate entries (cache blocking:
     one (k, BT*N) block of 16 frames is ~2.5x slower per frame than blocks of 4, measured).
@@ -243,8 +261,13 @@ def _push_planes(
         # flat[j, f, n] = (f0 + f) * M + candidates[b(f), n, j]: flat index into C and Nrm
         flat = (np.arange(f0, f1, dtype=np.intp) * M)[None, :, None] + cand[:, batch_of_frame[f0:f1]]
         acr = None if across is None else np.moveaxis(across, 2, 0)[:, batch_of_frame[f0:f1] if across.shape[0] > 1 else np.zeros(f1 - f0, np.intp)]
+        if extra is not None:
+            ke = extra.shape[2]
+            flat = np.concatenate([flat, (np.arange(f0, f1, dtype=np.intp) * M)[None, :, None] + np.moveaxis(extra[f0:f1], 2, 0)], 0)
+            if acr is not None:
+                acr = np.concatenate([acr, np.zeros((ke,) + acr.shape[1:], bool)], 0)
         out[:, f0:f1] = _push_block(
-            P[:, f0:f1].reshape(3, -1), C, Nrm, flat.reshape(k, -1), None if acr is None else acr.reshape(k, -1),
+            P[:, f0:f1].reshape(3, -1), C, Nrm, flat.reshape(flat.shape[0], -1), None if acr is None else acr.reshape(acr.shape[0], -1),
             M, margin_m, max_push_m, boundary, reach_m, iterations,
         ).reshape(3, f1 - f0, N)
     return out
@@ -260,30 +283,41 @@ def _push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reac
     L = P.shape[1]
     G = [np.take(C[c], flat) for c in range(3)]  # (k, L) candidate coordinates
     rows = np.arange(L, dtype=np.intp)
+    Gn = [np.take(Nrm[c], flat) for c in range(3)]  # (k, L) candidate normals n_j
     for _ in range(max(int(iterations), 1)):
         D = [P[c] - G[c] for c in range(3)]  # p - c_j
         d2 = D[0] * D[0] + D[1] * D[1] + D[2] * D[2]
+        s_all = D[0] * Gn[0] + D[1] * Gn[1] + D[2] * Gn[2]  # s_j = (p - c_j) . n_j
         j = np.argmin(d2, axis=0)  # closest candidate c*
+        # ... unless p lies behind the plane of a candidate it projects onto (tangential offset <
+        # _TANGENT_M) that is not much farther (< _FARTHER_M more): then p is inside that part,
+        # and the nearest vertex (outside an arm, say) misjudges it; take the deepest such plane.
+        s_near = np.take_along_axis(s_all, j[None], 0)[0]
+        dmin = np.sqrt(np.take_along_axis(d2, j[None], 0)[0])
+        behind = (s_all < 0) & (d2 - s_all * s_all < _TANGENT_M**2) & (np.sqrt(d2) <= dmin + _FARTHER_M)
+        deep = np.argmin(np.where(behind, s_all, np.inf), axis=0)
+        j = np.where(behind.any(axis=0) & (np.take_along_axis(s_all, deep[None], 0)[0] < s_near), deep, j)
         pick = j * L + rows
         sel = np.take(flat, pick)
-        ns = [np.take(Nrm[c], sel) for c in range(3)]  # n*
-        s = sum(np.take(D[c], pick) * ns[c] for c in range(3))  # s = (p - c*) . n*
+        ns = [np.take(Gn[c], pick) for c in range(3)]  # n*
+        s = np.take(s_all, pick)  # s = (p - c*) . n*
         delta = margin_m - s
         act = np.flatnonzero(delta > 0)  # only these need a push
         if len(act) == 0:
             break
         delta, s_a = delta[act], s[act]
         na = [ns[c][act] for c in range(3)]
+        Gna = [Gn[c][:, act] for c in range(3)]
+        a = na[0] * Gna[0] + na[1] * Gna[1] + na[2] * Gna[2]  # n* . n_j
+        s_j = s_all[:, act]
+        # a surface ahead of p (in the push direction), facing it and close in this frame squeezes:
+        # balanced push delta_j = (s_j - s*) / (1 - n*.n_j) (the module docstring)
+        ahead = -(D[0][:, act] * na[0] + D[1][:, act] * na[1] + D[2][:, act] * na[2]) > 0
         if across is not None:
-            fa = flat[:, act]
-            Gn = [np.take(Nrm[c], fa) for c in range(3)]  # (k, A) candidate normals n_j
-            Da = [D[c][:, act] for c in range(3)]
-            a = na[0] * Gn[0] + na[1] * Gn[1] + na[2] * Gn[2]  # n* . n_j
-            s_j = Da[0] * Gn[0] + Da[1] * Gn[1] + Da[2] * Gn[2]  # (p - c_j) . n_j
-            opposing = across[:, act] & (a < _OPPOSING_COS)
-            # squeeze limit: balanced push delta_j = (s_j - s*) / (1 - n*.n_j) over surfaces across a gap
-            bal = np.where(opposing, (s_j - s_a) / np.maximum(1.0 - a, 1.0), np.inf).min(axis=0)
-            delta = np.minimum(delta, np.maximum(bal, 0.0))
+            ahead = ahead | across[:, act]
+        opposing = ahead & (a < _OPPOSING_COS) & (d2[:, act] < _SQUEEZE_RADIUS_M**2)
+        bal = np.where(opposing, (s_j - s_a) / np.maximum(1.0 - a, 1.0), np.inf).min(axis=0)
+        delta = np.minimum(delta, np.maximum(bal, 0.0))
         if max_push_m is not None:
             delta = np.minimum(delta, max_push_m)
         if boundary is not None:
@@ -334,6 +368,9 @@ class GuardPlan:
     orientation    : +1.0, or -1.0 when the collider's faces wind inwards (normals are flipped)
     boundary       : (S,) bool or None, border vertices of an open collider
     reach_m        : median collider edge length, metres (border tolerance)
+    dynamic_points : (Nd,) int or None, points that get per-frame nearest candidates (skin-aware
+                     plans: points within DYNAMIC_RISK_M of a part skinned to another bone)
+    dynamic_region : (R,) int or None, indices into ``collider_ids`` searched for them per frame
     """
 
     collider_ids: np.ndarray
@@ -345,6 +382,8 @@ class GuardPlan:
     orientation: float
     boundary: np.ndarray | None
     reach_m: float
+    dynamic_points: np.ndarray | None = None
+    dynamic_region: np.ndarray | None = None
 
     @classmethod
     def build(
@@ -358,9 +397,18 @@ class GuardPlan:
         ahead_m: float = DEFAULT_AHEAD_M,
         frames: tuple[np.ndarray, np.ndarray] | None = None,
         k_frames: int = 4,
+        skin: tuple[np.ndarray, np.ndarray] | None = None,
+        k_skin: int = 4,
     ) -> "GuardPlan":
         """Candidates: the k collider vertices nearest to each point in the reference pose, plus
-        the k_ahead nearest to p + ahead_m n_0 (n_0: normal of the nearest vertex).
+        the k_ahead nearest to p + ahead_m n_0 (n_0: normal of the nearest vertex), plus the
+        k_skin nearest skinned mostly to another bone than the point (when ``skin`` is given).
+
+        Where the rest pose puts two parts side by side (a sleeve's armpit against the torso in
+        the A-pose), the plain nearest candidates may all lie on the part the point is skinned
+        to; when a joint bends, the other part comes against it (measured on 01_01: T-shirt
+        vertices skinned to the arm sank into the torso unseen). The skin-aware candidates are
+        the nearest collider vertices whose dominant bone differs from the point's.
 
         points_rest    : (B, N, 3) float32, metres, garment vertices in the rest pose
         collider_rest  : (B, M, 3) float32, metres, collider vertices in the same pose
@@ -369,6 +417,7 @@ class GuardPlan:
         k_ahead        : candidates per point from ahead_m (metres) along the rest normal
         frames         : optional (points (B, T', N, 3), collider (B, T', M, 3)) posed key frames;
                          each adds its ``k_frames`` nearest collider vertices per point
+        skin           : optional (point weights (N, J), collider weights (M, J)) LBS weights
         """
         points_rest = _check_frames("points_rest", points_rest, 3)
         collider_rest = _check_frames("collider_rest", collider_rest, 3)
@@ -402,6 +451,34 @@ class GuardPlan:
             q = points_rest + ahead_m * n0
             kk = int(min(k_ahead, len(usable)))
             parts.append(np.stack([usable[trees[b].query(q[b], k=kk)[1].reshape(N, kk)] for b in range(B)]))
+        if skin is not None and k_skin > 0:
+            # the nearest collider vertices skinned mostly to another bone than the point: the
+            # parts that a bending joint can bring against it (arm vs torso at the armpit)
+            pw, cw = (np.asarray(w, np.float32) for w in skin)
+            if pw.shape[0] != N or cw.shape[0] != M or pw.shape[1] != cw.shape[1]:
+                raise InputShapeError("skin", f"((N={N}, J), (M={M}, J))", (pw.shape, cw.shape))
+            point_bone = np.argmax(pw, 1)
+            collider_bone = np.argmax(cw[usable], 1)
+            skin_part = np.empty((B, N, k_skin), np.int64)
+            for bone in np.unique(point_bone):  # one KD-tree per dominant bone (<= J)
+                rows = np.flatnonzero(point_bone == bone)
+                others = usable[collider_bone != bone]
+                kk = int(min(k_skin, len(others)))
+                for b in range(B):
+                    got = others[cKDTree(collider_rest[b][others]).query(points_rest[b][rows], k=kk)[1].reshape(len(rows), kk)]
+                    skin_part[b, rows] = np.pad(got, ((0, 0), (0, k_skin - kk)), mode="edge")
+            parts.append(skin_part)
+            # Points that another part can reach when a joint bends: their rest-pose candidates
+            # cannot follow that part (it moves relative to the point), so the guard searches
+            # the region around them in every posed frame.
+            d_other = np.linalg.norm(points_rest[0] - collider_rest[0][skin_part[0, :, 0]], axis=-1)
+            dynamic_points = np.flatnonzero(d_other < DYNAMIC_RISK_M)
+            region = np.unique(np.concatenate(
+                [np.asarray(r, np.int64) for r in trees[0].query_ball_point(points_rest[0][dynamic_points], DYNAMIC_REGION_M)] + [np.zeros(0, np.int64)]
+            ))
+            dynamic_region_ids = usable[region]
+        else:
+            dynamic_points, dynamic_region_ids = None, None
         if frames is not None:
             fp, fc = (_check_frames("frames[0]", frames[0]), _check_frames("frames[1]", frames[1]))
             kk = int(min(k_frames, len(usable)))
@@ -410,6 +487,7 @@ class GuardPlan:
                 for t in range(fp.shape[1])
             ]
         cand = np.concatenate(parts, axis=-1)  # (B, N, k_total) collider vertex ids
+        extra_ids = dynamic_region_ids if dynamic_region_ids is not None else np.zeros(0, np.int64)
         # across a gap in the reference pose: opposing normal, point outside its plane, ahead
         cj = np.stack([collider_rest[b][cand[b]] for b in range(B)])  # (B, N, k, 3)
         nj = np.stack([n_rest[b][cand[b]] for b in range(B)])
@@ -419,8 +497,8 @@ class GuardPlan:
             & (np.einsum("bnkc,bnkc->bnk", rel, nj) > 0)
             & (np.einsum("bnkc,bnc->bnk", rel, n0) < 0)
         )
-        collider_ids, local = np.unique(cand, return_inverse=True)
-        local = local.reshape(cand.shape)
+        collider_ids, local = np.unique(np.concatenate([cand.ravel(), extra_ids]), return_inverse=True)
+        local = local[: cand.size].reshape(cand.shape)
         face_ids, inc = vertex_face_incidence(faces, M, collider_ids)
         e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
         reach = float(np.median(np.linalg.norm(e, axis=-1)))
@@ -434,6 +512,8 @@ class GuardPlan:
             orientation=orientation,
             boundary=bnd[collider_ids] if bnd.any() else None,
             reach_m=reach,
+            dynamic_points=dynamic_points if dynamic_points is not None and len(dynamic_points) else None,
+            dynamic_region=np.searchsorted(collider_ids, dynamic_region_ids) if dynamic_points is not None and len(dynamic_points) else None,
         )
 
     def collider_planes(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -499,11 +579,31 @@ def guard(
     if np.shape(collider)[:2] != (B, T):
         raise InputShapeError("collider", f"({B}, {T}, M, 3)", np.shape(collider))
     cp, cn = plan.collider_planes(collider)
+    extra = _dynamic_candidates(points, cp, plan) if plan.dynamic_points is not None else None
     out = _push_planes(
         _planes(points).reshape(3, B * T, N), cp, cn, plan.candidates, plan.across, T, len(plan.collider_ids), margin_m,
-        max_push_m, plan.boundary, plan.reach_m, iterations,
+        max_push_m, plan.boundary, plan.reach_m, iterations, extra,
     )
     return np.moveaxis(out.reshape(3, B, T, N), 0, -1)
+
+
+def _dynamic_candidates(points: np.ndarray, collider_planes: np.ndarray, plan: GuardPlan) -> np.ndarray:
+    """Per-frame nearest candidates (BT, N, DYNAMIC_K) local collider ids: for the plan's dynamic
+    points, the DYNAMIC_K nearest of its dynamic region in that frame (KD-tree per frame, C code;
+    the region is a few thousand vertices); every other point repeats its first plan candidate."""
+    B, T, N, _ = points.shape
+    S = len(plan.collider_ids)
+    C = collider_planes.reshape(3, B * T, S)
+    dyn, region = plan.dynamic_points, plan.dynamic_region
+    k = int(min(DYNAMIC_K, len(region)))
+    base = np.broadcast_to(plan.candidates[..., :1], (plan.candidates.shape[0], N, 1))
+    extra = np.repeat(np.repeat(base, k, axis=2)[:, None], T, axis=1)
+    extra = np.broadcast_to(extra, (B, T, N, k)).reshape(B * T, N, k).copy()
+    P = points.reshape(B * T, N, 3)
+    for f in range(B * T):  # a KD-tree per frame: the search itself runs in C
+        tree = cKDTree(C[:, f, region].T)
+        extra[f, dyn] = region[tree.query(P[f, dyn], k=k, workers=-1)[1].reshape(len(dyn), k)]
+    return extra
 
 
 # ------------------------------------------------------------------------------ layers
@@ -526,11 +626,19 @@ class LayerPlans:
         body_rest: np.ndarray,
         body_faces: np.ndarray,
         k: int = DEFAULT_CANDIDATES,
+        layer_weights: Sequence[np.ndarray] | None = None,
+        body_weights: np.ndarray | None = None,
     ) -> "LayerPlans":
-        """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3)."""
+        """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3);
+        layer_weights / body_weights : optional LBS weights (N_i, J) / (Vb, J) for
+        skinning-aware body candidates (GuardPlan.build's ``skin``)."""
         if len(layers_rest) != len(layer_faces):
             raise InputValueError("layer_faces", f"expected {len(layers_rest)} face arrays, got {len(layer_faces)}")
-        body = [GuardPlan.build(g, body_rest, body_faces, k) for g in layers_rest]
+        body = [
+            GuardPlan.build(g, body_rest, body_faces, k if layer_weights is None else SKIN_PLAN_K,
+                            skin=None if layer_weights is None else (layer_weights[i], body_weights), k_skin=2)
+            for i, g in enumerate(layers_rest)
+        ]
         inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] for i in range(len(layers_rest))]
         return cls(body=body, inner=inner)
 
@@ -553,7 +661,7 @@ def guard_layers(
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
-        p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m)
+        p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m, iterations=GUARD_ITERATIONS)
         for j in range(i):
             p = guard(p, out[j], plans.inner[i][j], layer_margin_m)
         out.append(p)

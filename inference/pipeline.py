@@ -178,7 +178,8 @@ def drape(
             # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
             # against the neutral body, the pose its skinning transforms start from).
             rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
-            plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces)
+            plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
+                                     layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights)
             posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m)
 
     return DrapeResult(
