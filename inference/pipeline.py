@@ -2,8 +2,15 @@
 
 Thesis eq. 4.2-4.3: T_c(beta, theta) = T_bar_c + R_G(beta) + R_L(beta, gamma_1..t), then
 M_c = W(T_c, beta, theta, W_c), then the collision post-process of ch. 4.2.1. Each stage is a
-function over batched float32 arrays; the learned models (fit MLP, wrinkle GRU, ONNX) replace
-``fit_garment`` / ``garment_dynamics`` without reshaping the pipeline.
+function over batched float32 arrays. The learned models (``inference.learned``: fit MLP R_G
+and wrinkle GRU R_L, ONNX, trained self-supervised with the SNUG losses) are the default; the
+retarget baseline and plain LBS stay selectable:
+
+- fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
+- fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
+- fit 'none'      : the neutral template, plain LBS
+- dynamics 'learned': + R_L(beta, gamma_1..t) per frame, gamma = motion_descriptor (one ORT call)
+- dynamics 'none'   : no per-frame displacement
 
 Units: metres, seconds, radians; Z-up world axes (the glb writer converts to Y-up).
 """
@@ -19,18 +26,23 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blen
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
+from inference.learned import LearnedGarment, LearnedModels, default_models
+from inference.motion.descriptor import motion_descriptor
 
-FitMode = Literal["retarget", "none"]
+FitMode = Literal["learned", "retarget", "none"]
+DynamicsMode = Literal["learned", "none"]
 
 
 @dataclass(frozen=True)
 class DrapeOptions:
-    """fit: 'retarget' (the .mhclo binding on the body shape + the template's collision
-    correction) or 'none' (plain LBS of the neutral template). margin_m: guard margin to the
-    body; layer_gap_m: extra margin per layer above the innermost."""
+    """fit: 'learned' (retarget + the fit regressor R_G), 'retarget' (the .mhclo binding on the
+    body shape + the template's collision correction) or 'none' (plain LBS of the neutral
+    template). dynamics: 'learned' (the wrinkle GRU R_L over the motion descriptor) or 'none'.
+    The learned modes need the garment's models (``MissingModelError`` otherwise).
+    margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost."""
 
-    fit: FitMode = "retarget"
-    dynamics: Literal["none"] = "none"
+    fit: FitMode = "learned"
+    dynamics: DynamicsMode = "learned"
     guard: bool = True
     margin_m: float = 0.002
     layer_gap_m: float = 0.003
@@ -101,24 +113,41 @@ class _Timer:
 
 
 # ---------------------------------------------------------------------- stages
-def fit_garment(garment: GarmentAsset, hm08_vertices: np.ndarray, mode: FitMode) -> np.ndarray:
+def fit_garment(garment: GarmentAsset, hm08_vertices: np.ndarray, mode: FitMode, phenotypes: np.ndarray | None = None, learned: LearnedGarment | None = None) -> np.ndarray:
     """Unposed garment on the body shape, T_bar_c + R_G(beta) (eq. 4.2 without R_L).
 
     hm08_vertices : (B, 19158, 3) shaped rest body in hm08 order
+    phenotypes    : (B, 6) the bodies' phenotypes ('learned' only)
+    learned       : the garment's LearnedGarment ('learned' only)
     returns       : (B, V, 3) float32 metres, in the shaped body's rest pose
                     ('none': the neutral template, unchanged)
     """
+    if mode == "learned":
+        if learned is None or phenotypes is None:
+            raise ValueError("fit 'learned' needs the garment's LearnedGarment and the phenotypes")
+        # eq. 4.2 with R_G a residual on the .mhclo retarget (inference.learned)
+        return (garment.retarget_fit(hm08_vertices) + learned.fit(phenotypes)).astype(np.float32)
     if mode == "retarget":
         return garment.retarget_fit(hm08_vertices).astype(np.float32)
     return np.broadcast_to(garment.template, (len(hm08_vertices),) + garment.template.shape).astype(np.float32)
 
 
-def garment_dynamics(unposed: np.ndarray, num_frames: int) -> np.ndarray:
-    """R_L(beta, gamma_1..t) of eq. 4.2: per-frame unposed displacements (B, T, V, 3).
+def garment_dynamics(unposed: np.ndarray, num_frames: int, mode: DynamicsMode = "none", phenotypes: np.ndarray | None = None,
+                     gamma: np.ndarray | None = None, learned: LearnedGarment | None = None) -> np.ndarray:
+    """Per-frame unposed garment T_c(beta, gamma_1..t) = fit + R_L(beta, gamma_1..t) (eq. 4.2).
 
-    No dynamics model in this version: zero displacements, so the per-frame unposed garment is the
-    fitted one (the learned wrinkle GRU replaces this stage).
+    unposed    : (B, V, 3) the fitted garment
+    phenotypes : (B, 6) ; gamma : (B, T, F) motion descriptor ; learned : the garment's models
+                 ('learned' only: the whole sequence in one ORT call, the GRU starting from h0 = 0)
+    returns    : (B, T, V, 3) float32 metres ('none': the fit repeated, a broadcast view)
     """
+    if mode == "learned":
+        if learned is None or phenotypes is None or gamma is None:
+            raise ValueError("dynamics 'learned' needs the garment's LearnedGarment, the phenotypes and gamma")
+        if gamma.shape[:2] != (unposed.shape[0], num_frames):
+            raise InputShapeError("gamma", f"({unposed.shape[0]}, {num_frames}, F)", gamma.shape)
+        delta, _ = learned.wrinkles(phenotypes, gamma)
+        return unposed[:, None] + delta
     return np.broadcast_to(unposed[:, None], (unposed.shape[0], num_frames) + unposed.shape[1:])
 
 
@@ -139,9 +168,11 @@ def drape(
     garments: list[GarmentAsset],
     options: DrapeOptions = DrapeOptions(),
     neutral: BodyShape | None = None,
+    models: LearnedModels | None = None,
 ) -> DrapeResult:
     """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
-    (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none')."""
+    (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none');
+    ``models`` the learned-model registry (default: ``inference.learned.default_models()``)."""
     timer = _Timer()
     if shape.rest_vertices.shape[0] != 1:
         raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
@@ -163,12 +194,23 @@ def drape(
             neutral = body.shape(NEUTRAL_PHENOTYPES[None])
         garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
 
+    learned: list[LearnedGarment | None] = [None] * len(garments)
+    gamma = None
+    if options.fit == "learned" or options.dynamics == "learned":
+        models = models or default_models()
+        with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
+            field = "/options/fit" if options.fit == "learned" else "/options/dynamics"
+            learned = [models.get(g.id, field) for g in garments]
+    if options.dynamics == "learned":
+        with timer("descriptor"):
+            gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)
+
     unposed_fits, posed = [], []
-    for g in garments:
+    for g, lg in zip(garments, learned):
         with timer("fit"):
-            unposed = fit_garment(g, hm08, options.fit)
+            unposed = fit_garment(g, hm08, options.fit, shape.phenotypes, lg)
         with timer("dynamics"):
-            unposed_t = garment_dynamics(unposed, motion.num_frames)
+            unposed_t = garment_dynamics(unposed, motion.num_frames, options.dynamics, shape.phenotypes, gamma, lg)
         with timer("skin"):
             posed.append(linear_blend_skinning(unposed_t, g.skin_weights, garment_transforms))
         unposed_fits.append(unposed)

@@ -1,0 +1,289 @@
+"""Precomputed numpy banks for the self-supervised garment training, so a training step is cheap.
+
+- ``harmonic_basis``: the low-rank output basis of ``training.models`` (manifold harmonics).
+- ``ShapeBank``: bodies of many adult shapes (the corners of the phenotype box + uniform
+  samples) with what the SNUG losses need per shape: the shaped rest body around the garment,
+  its vertex normals, the ``.mhclo`` retarget fit of the garment, KD-tree collision candidates.
+- ``MotionBank``: CMU training clips retargeted onto the neutral body at 30 fps, with the motion
+  descriptor gamma (eq. 6.17) of every frame and the 3-frame windows of SNUG §5.2.5.
+
+Units: metres, seconds, radians. Arrays float32 (indices int32/int64).
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import eigsh
+
+from inference.body import BodyModel, linear_blend_skinning
+from inference.garment import GarmentAsset
+from inference.guard import vertex_normals
+from inference.motion.asfamc import load_asf_amc
+from inference.motion.descriptor import DESCRIPTOR_LAYOUT, motion_descriptor
+from inference.motion.retarget import ground, retarget, target_leg_length
+from training.models import phenotype_box
+from training.physics import body_candidates
+
+log = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+MOCAP_DIR = REPO_ROOT / "training" / "sources" / "mocap" / "cmu-asfamc"
+CACHE_DIR = REPO_ROOT / "build" / "cache"
+FPS = 30.0
+# SNUG §5.2.5: the GRU is trained on sub-sequences of 3 frames.
+WINDOW_FRAMES = 3
+# CMU training clips (subject, trial). Never 01_01 (the spec's test sequence); 02_02 is held out
+# for validation. AMC files under training/sources/mocap/cmu-asfamc/<subject>/.
+TRAIN_CLIPS = ("01_14", "02_01", "02_03", "02_04", "02_05", "02_09")
+VALIDATION_CLIP = "02_02"
+TEST_ONLY_CLIPS = ("01_01",)
+# Descriptor entries that scale with the body's size (root linear velocity and acceleration).
+_LINEAR_SLICES = (DESCRIPTOR_LAYOUT["root_linear_velocity"], DESCRIPTOR_LAYOUT["root_linear_acceleration"])
+
+
+# ------------------------------------------------------------------------------ basis
+def graph_laplacian(num_vertices: int, edges: np.ndarray) -> sp.csc_matrix:
+    """Combinatorial graph Laplacian L = D - A (V, V) of a mesh's edges (E, 2)."""
+    e = np.asarray(edges, np.int64)
+    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(num_vertices, num_vertices))
+    A = ((A + A.T) > 0).astype(np.float64).tocsr()
+    return (sp.diags(np.asarray(A.sum(1)).ravel()) - A).tocsc()
+
+
+def harmonic_basis(num_vertices: int, edges: np.ndarray, k: int, cache: Path | None = None) -> np.ndarray:
+    """The k smoothest manifold harmonics (eigenvectors of the graph Laplacian), (V, k) float32.
+
+    Columns are scaled to unit RMS over the vertices (|phi|_2 = sqrt(V)), so a coefficient is
+    the RMS displacement in metres of its mode. The constant mode of every connected component
+    comes first (eigenvalue 0: rigid translation). Cached as ``cache`` (.npy) when given.
+    """
+    if cache is not None and cache.exists():
+        U = np.load(cache)
+        if U.shape == (num_vertices, k):
+            return U
+    k_eff = min(k, num_vertices - 2)
+    # shift-invert just below 0: L is positive semi-definite, its null space is the constants
+    _, U = eigsh(graph_laplacian(num_vertices, edges), k=k_eff, sigma=-1e-3, which="LM")
+    U = (U * np.sqrt(num_vertices)).astype(np.float32)
+    if k_eff < k:
+        U = np.concatenate([U, np.zeros((num_vertices, k - k_eff), np.float32)], 1)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        np.save(cache, U)
+    return U
+
+
+# ------------------------------------------------------------------------------ shapes
+def sample_adult_phenotypes(n: int, rng: np.random.Generator, corners: bool = True) -> np.ndarray:
+    """n phenotype vectors (n, 6) float32 in the adult box (inference.body.PHENOTYPE_RANGES):
+    the 64 corners first when ``corners`` (as many as fit in n), then uniform samples."""
+    lo, hi = phenotype_box()
+    rows = []
+    if corners:
+        rows = [lo + np.array(c, np.float32) * (hi - lo) for c in itertools.product((0, 1), repeat=6)][:n]
+    uniform = lo + rng.random((n - len(rows), 6)).astype(np.float32) * (hi - lo)
+    return np.concatenate([np.array(rows, np.float32).reshape(-1, 6), uniform], 0).astype(np.float32)
+
+
+@dataclass
+class ShapeBank:
+    """Per-shape data of one garment for the static and dynamic losses (N shapes).
+
+    phenotypes      : (N, 6)
+    rest_bone_poses : (N, J, 4, 4), the shaped skeleton (inference.body.BodyShape)
+    leg_length_m    : (N,) metres (inference.motion.retarget.target_leg_length)
+    retarget        : (N, V, 3) metres, the .mhclo retarget fit (GarmentAsset.retarget_fit)
+    body_index      : (M,) int64, the body vertices kept: every vertex that is a collision
+                      candidate of some garment vertex for some shape (the body near the garment)
+    body_points     : (N, M, 3) metres, shaped rest body at ``body_index``
+    body_normals    : (N, M, 3) unit outward vertex normals (of the whole body mesh)
+    body_weights    : (M, J) skinning weights of the kept body vertices
+    candidates      : (N, V, k) int32, the k kept body vertices nearest to each retarget vertex
+    """
+
+    phenotypes: np.ndarray
+    rest_bone_poses: np.ndarray
+    leg_length_m: np.ndarray
+    retarget: np.ndarray
+    body_index: np.ndarray
+    body_points: np.ndarray
+    body_normals: np.ndarray
+    body_weights: np.ndarray
+    candidates: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.phenotypes)
+
+    @classmethod
+    def build(cls, body: BodyModel, asset: GarmentAsset, phenotypes: np.ndarray, k: int = 8, chunk: int = 32) -> "ShapeBank":
+        """Shape ``phenotypes`` (N, 6), fit the garment, find its collision candidates."""
+        phenotypes = np.asarray(phenotypes, np.float32)
+        parts: dict[str, list] = {n: [] for n in ("poses", "legs", "retarget", "points", "normals", "cand")}
+        for s in range(0, len(phenotypes), chunk):
+            shape = body.shape(phenotypes[s : s + chunk])
+            fit = asset.retarget_fit(body.hm08_vertices(shape))
+            parts["poses"].append(shape.rest_bone_poses)
+            parts["legs"].append([target_leg_length(shape, b) for b in range(len(fit))])
+            parts["retarget"].append(fit)
+            parts["points"].append(shape.rest_vertices)
+            parts["normals"].append(np.stack([vertex_normals(v, body.faces) for v in shape.rest_vertices]))
+            parts["cand"].append(body_candidates(fit, shape.rest_vertices, k))
+        points = np.concatenate(parts["points"])
+        normals = np.concatenate(parts["normals"])
+        cand = np.concatenate(parts["cand"])
+        keep = np.unique(cand)  # the body near the garment, for every shape
+        remap = np.full(points.shape[1], -1, np.int64)
+        remap[keep] = np.arange(len(keep))
+        return cls(
+            phenotypes=phenotypes,
+            rest_bone_poses=np.concatenate(parts["poses"]).astype(np.float32),
+            leg_length_m=np.concatenate([np.asarray(x, np.float32) for x in parts["legs"]]),
+            retarget=np.concatenate(parts["retarget"]).astype(np.float32),
+            body_index=keep,
+            body_points=np.ascontiguousarray(points[:, keep]),
+            body_normals=np.ascontiguousarray(normals[:, keep]),
+            body_weights=np.ascontiguousarray(body.dense_weights[keep]),
+            candidates=remap[cand].astype(np.int32),
+        )
+
+
+# ------------------------------------------------------------------------------ motions
+def clip_paths(clip_id: str, mocap_dir: Path = MOCAP_DIR) -> tuple[Path, Path]:
+    """ASF and AMC paths of a CMU clip id 'SS_TT' (subject, trial)."""
+    subject = clip_id.split("_")[0]
+    return mocap_dir / subject / f"{subject}.asf", mocap_dir / subject / f"{clip_id}.amc"
+
+
+def load_training_clip(clip_id: str, body: BodyModel, neutral, mocap_dir: Path = MOCAP_DIR, max_frames: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A CMU clip retargeted onto the neutral body at 30 fps, feet on z = 0 (as the bundled clips).
+
+    returns rotations (T, 31, 3) float32 radians, translation (T, 3) float32 metres
+    """
+    if clip_id in TEST_ONLY_CLIPS:
+        raise ValueError(f"{clip_id} is the spec's test sequence: never train on it")
+    asf, amc = clip_paths(clip_id, mocap_dir)
+    source = load_asf_amc(asf, amc)
+    if max_frames is not None:  # source frames at the source rate (CMU: 120 fps)
+        source = source.frames(0, int(max_frames * source.fps / FPS) + 1)
+    result = retarget(source, body, neutral, fps=FPS, grounded=False)
+    translation = ground(body, neutral, result.rotations[None], result.translation[None], FPS, 0.5)[0]
+    T = len(result.rotations) if max_frames is None else min(max_frames, len(result.rotations))
+    return result.rotations[:T], translation[:T]
+
+
+@dataclass
+class MotionBank:
+    """Concatenated clips on the neutral body, 30 fps (N frames in all).
+
+    clip_ids     : clip id per clip ; clip_start : (C + 1,) frame offsets of the clips
+    rotations    : (N, 31, 3) radians ; translation : (N, 3) metres (neutral body)
+    gamma        : (N, F) motion descriptor of each frame within its clip (eq. 6.17)
+    leg_length_m : leg length of the neutral body the clips are on
+    windows      : (W,) int64, first frame of every 3-frame window inside one clip
+    """
+
+    clip_ids: list[str]
+    clip_start: np.ndarray
+    rotations: np.ndarray
+    translation: np.ndarray
+    gamma: np.ndarray
+    leg_length_m: float
+    windows: np.ndarray
+    fps: float = FPS
+
+    @classmethod
+    def build(cls, clip_ids: tuple[str, ...] | list[str], body: BodyModel, neutral, mocap_dir: Path = MOCAP_DIR, max_frames: int | None = None) -> "MotionBank":
+        rots, trans, gam, starts, windows = [], [], [], [0], []
+        for cid in clip_ids:
+            r, t = load_training_clip(cid, body, neutral, mocap_dir, max_frames)
+            gam.append(motion_descriptor(r[None], t[None], FPS)[0])
+            windows.append(starts[-1] + np.arange(max(len(r) - WINDOW_FRAMES + 1, 0)))
+            rots.append(r)
+            trans.append(t)
+            starts.append(starts[-1] + len(r))
+            log.info("clip %s: %d frames", cid, len(r))
+        return cls(
+            clip_ids=list(clip_ids),
+            clip_start=np.array(starts, np.int64),
+            rotations=np.concatenate(rots).astype(np.float32),
+            translation=np.concatenate(trans).astype(np.float32),
+            gamma=np.concatenate(gam).astype(np.float32),
+            leg_length_m=float(target_leg_length(neutral, 0)),
+            windows=np.concatenate(windows).astype(np.int64),
+        )
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, clip_ids=np.array(self.clip_ids), clip_start=self.clip_start, rotations=self.rotations,
+                 translation=self.translation, gamma=self.gamma, leg_length_m=np.float64(self.leg_length_m), windows=self.windows)
+
+    @classmethod
+    def load(cls, path: Path) -> "MotionBank":
+        with np.load(path, allow_pickle=False) as f:
+            return cls(clip_ids=[str(c) for c in f["clip_ids"]], clip_start=f["clip_start"], rotations=f["rotations"],
+                       translation=f["translation"], gamma=f["gamma"], leg_length_m=float(f["leg_length_m"]), windows=f["windows"])
+
+    @classmethod
+    def cached(cls, clip_ids, body: BodyModel, neutral, max_frames: int | None = None, cache_dir: Path = CACHE_DIR) -> "MotionBank":
+        """``build`` once, then from ``cache_dir`` (keyed by the clip ids and max_frames)."""
+        path = cache_dir / f"motions_{'-'.join(clip_ids)}_{max_frames or 'all'}.npz"
+        if path.exists():
+            return cls.load(path)
+        bank = cls.build(clip_ids, body, neutral, max_frames=max_frames)
+        bank.save(path)
+        return bank
+
+    def gamma_statistics(self, std_floor: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std (F,) float32 of gamma over all frames (std floored at ``std_floor``)."""
+        return self.gamma.mean(0).astype(np.float32), np.maximum(self.gamma.std(0), std_floor).astype(np.float32)
+
+    def window_frames(self, starts: np.ndarray, length: int = WINDOW_FRAMES) -> np.ndarray:
+        """Frame indices (B, length) of windows starting at ``starts`` (B,)."""
+        return np.asarray(starts)[:, None] + np.arange(length)[None]
+
+
+def scale_motion(translation: np.ndarray, gamma: np.ndarray, ratio: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The neutral body's motion on bodies with leg lengths ``ratio`` (B,) x the neutral one:
+    root translation and the root linear velocity / acceleration entries of gamma scaled
+    (as ``inference.motion.clips.adapt_clip`` scales translation; the floor correction is a
+    vertical offset that changes neither the garment's inertia nor its contacts).
+
+    translation : (B, T, 3) ; gamma : (B, T, F) ; returns both scaled (copies)
+    """
+    r = np.asarray(ratio, np.float32)[:, None, None]
+    g = gamma.copy()
+    for s in _LINEAR_SLICES:
+        g[..., s] *= r
+    return translation * r, g
+
+
+def pose_windows(body: BodyModel, bank: ShapeBank, shape_idx: np.ndarray, motions: MotionBank, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Skinning transforms and gamma of windows on bank shapes (numpy, per training step).
+
+    shape_idx : (B,) into ``bank`` ; frames : (B, T) into ``motions``
+    returns   : transforms (B, T, J, 4, 4) float32 (rest -> posed, inference.body.BodyModel.pose)
+                and gamma (B, T, F) float32
+    """
+    ratio = bank.leg_length_m[shape_idx] / motions.leg_length_m
+    translation, gamma = scale_motion(motions.translation[frames], motions.gamma[frames], ratio)
+    _, transforms = body.pose(bank.rest_bone_poses[shape_idx], motions.rotations[frames], translation)
+    return transforms, gamma
+
+
+def posed_body(bank: ShapeBank, shape_idx: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The kept body vertices and normals posed by ``transforms`` (B, T, J, 4, 4), numpy LBS.
+
+    returns points (B, T, M, 3), normals (B, T, M, 3) (rest normals rotated by the blended
+    rotation, renormalised)
+    """
+    pts = np.concatenate([linear_blend_skinning(bank.body_points[i][None], bank.body_weights, transforms[b : b + 1]) for b, i in enumerate(shape_idx)])
+    rot = transforms.copy()
+    rot[..., :3, 3] = 0.0
+    nrm = np.concatenate([linear_blend_skinning(bank.body_normals[i][None], bank.body_weights, rot[b : b + 1]) for b, i in enumerate(shape_idx)])
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True) + 1e-12
+    return pts, nrm

@@ -1,0 +1,176 @@
+"""Train the fit regressor R_G (thesis ch. 4.2.2) self-supervised on the static energy (SNUG ch. 5.2.4).
+
+    min_theta  E_shape [ L_strain + L_bending + L_gravity + L_collision ]   (eq. 5.7, no inertia)
+    x(beta) = retarget_fit(beta) + R_G(beta; theta)     (garment on the shaped body, rest A-pose)
+
+Shapes are drawn uniformly over the adult phenotype box, its 64 corners included, from a bank
+precomputed once (``training.datasets.ShapeBank``): the retarget fit, the shaped body near the
+garment, its normals and the KD-tree collision candidates of every shape. 20 other shapes
+(another seed) are held out for the metrics.
+
+Run (one garment; writes build/models/<garment>/fit.pt with its config and metrics):
+    python -m training.train_fit --garment tshirt --minutes 8
+    python -m training.train_fit --garment tshirt --smoke      # CI: a few steps, tiny bank
+Then ``python -m training.train_wrinkle`` and ``python -m training.export_onnx``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from inference.body import BodyModel
+from inference.garment import GarmentCatalog
+from training.datasets import CACHE_DIR, REPO_ROOT, ShapeBank, harmonic_basis, sample_adult_phenotypes
+from training.manifest import git_commit
+from training.models import FitRegressor
+from training.physics import ClothGeometry, body_signed_distances, energy_terms
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_DIR = REPO_ROOT / "build" / "models"
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """One fit-regressor training run (saved with the model)."""
+
+    garment: str = "tshirt"
+    minutes: float = 8.0  # wall-clock training budget (the bank build is not counted)
+    max_steps: int = 100_000  # stop earlier than the budget after this many steps
+    bank_shapes: int = 512  # training shapes: the 64 box corners + uniform samples in the adult box
+    eval_shapes: int = 20  # held-out uniform shapes (seed + 1) for the metrics
+    candidates: int = 8  # KD-tree collision candidates per garment vertex (eq. 5.12's d(x))
+    basis_size: int = 128  # manifold harmonics of the output basis (training.models.OutputBasis)
+    hidden: int = 128  # MLP width (thesis ch. 4.3: one hidden layer of 20 was enough with supervision)
+    layers: int = 2  # hidden layers
+    batch_size: int = 16  # shapes per step
+    lr: float = 1e-3  # Adam, first phase
+    lr_final: float = 1e-4  # Adam after ``lr_drop`` of the budget (SNUG §5.3.1: 1e-3 then 1e-4)
+    lr_drop: float = 0.7  # fraction of the budget (time or steps) after which lr = lr_final
+    seed: int = 0
+    threads: int = 1  # torch intra-op threads (the CPU is shared)
+    log_every: int = 50
+
+
+def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBank) -> dict:
+    """Mean static energy terms (J) over ``bank`` of retarget + R_G (model None: the retarget
+    alone), mean / max vertex distance to the retarget (cm), and the fraction of garment
+    vertices closer to the body than the collision margin (d < eps) and inside it (d < 0)."""
+    with torch.no_grad():
+        x0 = torch.as_tensor(bank.retarget)
+        x = x0 + model(torch.as_tensor(bank.phenotypes)) if model is not None else x0
+        terms = energy_terms(cloth, x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), torch.as_tensor(bank.candidates.astype(np.int64)))
+        d = body_signed_distances(x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), torch.as_tensor(bank.candidates.astype(np.int64)))
+        dist = (x - x0).norm(dim=-1)
+    out = {f"{k}_j": float(v.mean()) for k, v in terms.items()}
+    out["static_j"] = float(sum(v for v in terms.values()).mean())
+    out["distance_to_retarget_cm_mean"] = float(dist.mean() * 100)
+    out["distance_to_retarget_cm_max"] = float(dist.max() * 100)
+    out["within_margin_fraction"] = float((d < cloth.material.collision_margin_m).float().mean())
+    out["inside_fraction"] = float((d < 0).float().mean())
+    return out
+
+
+def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT_DIR) -> dict:
+    """Train R_G for ``config.garment``; write ``out_dir/<garment>/fit.pt``; return the record."""
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    body = BodyModel.load()
+    asset = GarmentCatalog.load().get(config.garment)
+    cloth = ClothGeometry.from_asset(asset, torch.float32)
+
+    t_bank = time.perf_counter()
+    basis = harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")
+    bank = ShapeBank.build(body, asset, sample_adult_phenotypes(config.bank_shapes, rng), config.candidates)
+    held_out = ShapeBank.build(body, asset, sample_adult_phenotypes(config.eval_shapes, np.random.default_rng(config.seed + 1), corners=False), config.candidates)
+    bank_s = time.perf_counter() - t_bank
+    log.info("%s: %d vertices, bank of %d shapes (%d body vertices kept) in %.1f s", config.garment, asset.num_vertices, len(bank), len(bank.body_index), bank_s)
+
+    model = FitRegressor(basis, config.hidden, config.layers)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    P = torch.as_tensor(bank.phenotypes)
+    X0 = torch.as_tensor(bank.retarget)
+    BP, BN = torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals)
+    C = torch.as_tensor(bank.candidates.astype(np.int64))
+
+    budget_s = config.minutes * 60.0
+    t0 = time.perf_counter()
+    step, history = 0, []
+    while step < config.max_steps and time.perf_counter() - t0 < budget_s:
+        progress = max((time.perf_counter() - t0) / budget_s, step / config.max_steps)
+        for g in opt.param_groups:  # SNUG §5.3.1: lr 1e-3, then 1e-4
+            g["lr"] = config.lr if progress < config.lr_drop else config.lr_final
+        idx = torch.as_tensor(rng.integers(0, len(bank), config.batch_size))
+        x = X0[idx] + model(P[idx])  # eq. 4.2 without R_L: retarget fit + R_G
+        terms = energy_terms(cloth, x, BP[idx], BN[idx], C[idx])
+        loss = sum(terms.values()).mean()  # L_static, eq. 5.7
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        step += 1
+        if step % config.log_every == 0 or step == 1:
+            history.append({"step": step, "seconds": time.perf_counter() - t0, "loss_j": float(loss.detach()), **{k: float(v.detach().mean()) for k, v in terms.items()}})
+            log.info("step %d %.0f s: L_static %.5f J (%s)", step, history[-1]["seconds"], float(loss.detach()), ", ".join(f"{k} {float(v.detach().mean()):.4f}" for k, v in terms.items()))
+    wall_s = time.perf_counter() - t0
+
+    model.eval()
+    metrics = {"held_out_learned": evaluate_fit(model, cloth, held_out), "held_out_retarget": evaluate_fit(None, cloth, held_out)}
+    log.info("held-out static energy: learned %.5f J vs retarget %.5f J; distance to retarget %.2f cm",
+             metrics["held_out_learned"]["static_j"], metrics["held_out_retarget"]["static_j"], metrics["held_out_learned"]["distance_to_retarget_cm_mean"])
+    record = {
+        "model": "fit",
+        "config": asdict(config),
+        "smoke": smoke,
+        "steps": step,
+        "train_wall_s": wall_s,
+        "bank_build_s": bank_s,
+        "metrics": metrics,
+        "history": history,
+        "git_commit": git_commit(),
+        "torch": torch.__version__,
+    }
+    path = out_dir / config.garment / ("fit_smoke.pt" if smoke else "fit.pt")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"record": record, "state_dict": model.state_dict(), "basis": basis, "hidden": config.hidden, "layers": config.layers}, path)
+    log.info("wrote %s (%d steps, %.1f min)", path, step, wall_s / 60)
+    return record
+
+
+def load_fit(path: Path) -> tuple[FitRegressor, dict]:
+    """A trained R_G and its record from a ``fit.pt`` checkpoint."""
+    ck = torch.load(path, weights_only=False)
+    model = FitRegressor(ck["basis"], ck["hidden"], ck["layers"])
+    model.load_state_dict(ck["state_dict"])
+    return model.eval(), ck["record"]
+
+
+SMOKE = dict(minutes=0.25, max_steps=5, bank_shapes=6, eval_shapes=3, basis_size=16, hidden=16, batch_size=2, log_every=1)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--garment", required=True)
+    p.add_argument("--minutes", type=float, default=FitConfig.minutes)
+    p.add_argument("--max-steps", type=int, default=FitConfig.max_steps)
+    p.add_argument("--threads", type=int, default=FitConfig.threads)
+    p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank (CI)")
+    p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads)
+    if args.smoke:
+        kw.update(SMOKE)
+    record = train_fit(FitConfig(**kw), smoke=args.smoke, out_dir=args.out)
+    log.info("metrics: %s", json.dumps(record["metrics"], indent=1))
+
+
+if __name__ == "__main__":
+    main()

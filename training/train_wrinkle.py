@@ -1,0 +1,303 @@
+"""Train the wrinkle GRU R_L (thesis ch. 4.2.3) self-supervised with the SNUG loss (ch. 5.2.3-5.2.5).
+
+    x_t = W( retarget_fit(beta) + R_G(beta) + R_L(beta, gamma_1..t), beta, theta_t, W_c )   (eq. 4.2-4.3)
+    L   = L_inertia(x_2; x_1, x_0) + sum_t L_static(x_t; posed body at t)          (eq. 5.5-5.12)
+
+SNUG protocol (§5.2.5, §5.3.1): 3-frame windows of CMU clips on the neutral body, each paired
+with a new random shape from the bank (the root translation scaled to that body's legs), GRU
+initial state h0 ~ N(0, 0.1), batch 16, Adam lr 1e-3 then 1e-4. R_G is the frozen fit
+regressor (``build/models/<garment>/fit.pt`` from ``training.train_fit``). Skinning uses the
+garment's own weights (the dress: its diffused weights, as they are). Collision candidates are
+the KD-tree candidates of the shape bank in the rest pose (``training.datasets.ShapeBank``):
+the closest of the k rest-pose neighbours is taken in the posed frame.
+
+Training clips: ``training.datasets.TRAIN_CLIPS`` (never 01_01); validation: 02_02, run as one
+sequence from h0 = 0 on held-out shapes, energies per frame against the fit-only baseline
+(R_L = 0).
+
+Run (writes build/models/<garment>/wrinkle.pt with its config and metrics):
+    python -m training.train_wrinkle --garment tshirt --minutes 8
+    python -m training.train_wrinkle --garment tshirt --smoke     # CI: a few steps
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+from inference.garment import GarmentCatalog
+from training.datasets import (
+    CACHE_DIR,
+    TRAIN_CLIPS,
+    VALIDATION_CLIP,
+    WINDOW_FRAMES,
+    MotionBank,
+    ShapeBank,
+    harmonic_basis,
+    pose_windows,
+    sample_adult_phenotypes,
+)
+from training.manifest import git_commit
+from training.models import WrinkleGRU
+from training.physics import ClothGeometry, energy_terms, inertia_energy
+from training.train_fit import CHECKPOINT_DIR, load_fit
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WrinkleConfig:
+    """One wrinkle-GRU training run (saved with the model)."""
+
+    garment: str = "tshirt"
+    minutes: float = 8.0  # wall-clock training budget (banks not counted)
+    max_steps: int = 100_000
+    bank_shapes: int = 256  # training shapes: 64 box corners + uniform (a new one per window)
+    candidates: int = 8  # KD-tree collision candidates per garment vertex
+    basis_size: int = 192  # manifold harmonics of the output basis
+    hidden: int = 256  # GRU width (SNUG §5.2.5: 4 GRUs of 256, tanh)
+    layers: int = 4
+    h0_std: float = 0.1  # h0 ~ N(0, 0.1) per window (SNUG §5.2.5)
+    batch_size: int = 16  # windows per step (SNUG §5.3.1)
+    lr: float = 1e-3  # Adam, then lr_final after lr_drop of the budget (SNUG §5.3.1)
+    lr_final: float = 1e-4
+    lr_drop: float = 0.7
+    grad_clip: float = 1.0  # global gradient-norm clip (energy spikes from deep collisions)
+    clips: tuple[str, ...] = TRAIN_CLIPS
+    validation_clip: str = VALIDATION_CLIP
+    validation_shapes: int = 4  # neutral + held-out uniform shapes
+    validation_frames: int = 120  # first frames of the validation clip
+    max_clip_frames: int | None = None  # truncate clips (smoke runs)
+    seed: int = 0
+    threads: int = 1
+    log_every: int = 25
+
+
+def skin_torch(rest: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """LBS in torch (thesis eq. 4.3): x[n, v] = sum_j w[v, j] T[n, j] rest[n, v].
+
+    rest : (N, V, 3) metres ; weights : (V, J) ; transforms : (N, J, 4, 4) (rows 0-2 used)
+    returns (N, V, 3)
+    """
+    N, J = transforms.shape[:2]
+    # M[n, v, i, k] = sum_j w[v, j] T[n, j, i, k]
+    M = torch.matmul(weights, transforms[:, :, :3, :].reshape(N, J, 12)).reshape(N, -1, 3, 4)
+    return torch.einsum("nvik,nvk->nvi", M[..., :3], rest) + M[..., 3]
+
+
+def posed_body_torch(bank: ShapeBank, shape_idx: np.ndarray, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Kept body vertices and unit normals of bank shapes posed by ``transforms`` (B, T, J, 4, 4).
+
+    Normals: the rest normals rotated by the blended rotation, renormalised. returns (B*T, M, 3) x 2
+    """
+    B, T = transforms.shape[:2]
+    pts = torch.as_tensor(bank.body_points[shape_idx])[:, None].expand(-1, T, -1, -1).reshape(B * T, -1, 3)
+    nrm = torch.as_tensor(bank.body_normals[shape_idx])[:, None].expand(-1, T, -1, -1).reshape(B * T, -1, 3)
+    w = torch.as_tensor(bank.body_weights)
+    Tf = transforms.reshape(B * T, *transforms.shape[2:])
+    rot = Tf.clone()
+    rot[..., :3, 3] = 0.0
+    n = skin_torch(nrm, w, rot)
+    return skin_torch(pts, w, Tf), n / (n.norm(dim=-1, keepdim=True) + 1e-12)
+
+
+@dataclass
+class WindowBatch:
+    """Tensors of one batch of B windows of T frames (see ``make_batch``)."""
+
+    phenotypes: torch.Tensor  # (B, 6)
+    gamma: torch.Tensor  # (B, T, F)
+    fitted: torch.Tensor  # (B, V, 3) unposed retarget + R_G
+    transforms: torch.Tensor  # (B, T, J, 4, 4)
+    body_points: torch.Tensor  # (B*T, M, 3)
+    body_normals: torch.Tensor  # (B*T, M, 3)
+    candidates: torch.Tensor  # (B*T, V, k) int64
+
+
+def make_batch(body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, shape_idx: np.ndarray, frames: np.ndarray) -> WindowBatch:
+    """Pose windows ``frames`` (B, T) on bank shapes ``shape_idx`` (B,) (numpy FK, torch LBS)."""
+    transforms, gamma = pose_windows(body, bank, shape_idx, motions, frames)
+    T = frames.shape[1]
+    tf = torch.as_tensor(transforms)
+    bp, bn = posed_body_torch(bank, shape_idx, tf)
+    cand = torch.as_tensor(bank.candidates[shape_idx].astype(np.int64))
+    cand = cand[:, None].expand(-1, T, -1, -1).reshape(-1, *cand.shape[1:])
+    return WindowBatch(torch.as_tensor(bank.phenotypes[shape_idx]), torch.as_tensor(gamma), torch.as_tensor(fitted[shape_idx]), tf, bp, bn, cand)
+
+
+def garment_frames(model: WrinkleGRU | None, batch: WindowBatch, weights: torch.Tensor, h0: torch.Tensor | None) -> torch.Tensor:
+    """Posed garments (B, T, V, 3): skin(fitted + R_L) per frame (model None: R_L = 0)."""
+    B, T = batch.gamma.shape[:2]
+    unposed = batch.fitted[:, None].expand(-1, T, -1, -1)
+    if model is not None:
+        delta, _ = model(batch.phenotypes, batch.gamma, h0)
+        unposed = unposed + delta
+    x = skin_torch(unposed.reshape(B * T, -1, 3), weights, batch.transforms.reshape(B * T, *batch.transforms.shape[2:]))
+    return x.reshape(B, T, -1, 3)
+
+
+def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """SNUG loss (eq. 5.5) of windows x (B, T, V, 3): L_static summed over the T frames (eq. 5.7)
+    + L_inertia of every frame t >= 2 from its two predecessors (eq. 5.6); mean over the batch.
+    Returns the loss and its terms (B,) J."""
+    B, T = x.shape[:2]
+    flat = x.reshape(B * T, -1, 3)
+    terms = {k: v.reshape(B, T).sum(1) for k, v in energy_terms(cloth, flat, batch.body_points, batch.body_normals, batch.candidates).items()}
+    terms["inertia"] = sum(inertia_energy(cloth, x[:, t], x[:, t - 1], x[:, t - 2], dt_s) for t in range(2, T))
+    return sum(terms.values()).mean(), terms
+
+
+def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, weights: torch.Tensor, frames: int) -> dict:
+    """Whole-sequence run (h0 = 0) of the validation clip on every bank shape: mean energy terms
+    per frame (J) of the learned garment and of the fit-only baseline (R_L = 0)."""
+    T = min(frames, int(motions.clip_start[1]))
+    out: dict[str, dict[str, float]] = {}
+    with torch.no_grad():
+        acc: dict[str, dict[str, float]] = {"learned": {}, "fit_only": {}}
+        for s in range(len(bank)):
+            batch = make_batch(body, bank, fitted, motions, np.array([s]), np.arange(T)[None])
+            for name, m in (("learned", model), ("fit_only", None)):
+                x = garment_frames(m, batch, weights, model.initial_state(1) if m is not None else None)
+                _, terms = snug_loss(cloth, x, batch, 1.0 / motions.fps)
+                for k, v in terms.items():
+                    per_frame = float(v.sum()) / (T if k != "inertia" else max(T - 2, 1))
+                    acc[name][k] = acc[name].get(k, 0.0) + per_frame / len(bank)
+        for name, terms in acc.items():
+            out[name] = {f"{k}_j_per_frame": v for k, v in terms.items()}
+            out[name]["static_j_per_frame"] = sum(v for k, v in terms.items() if k != "inertia")
+    out["frames"] = T
+    out["shapes"] = len(bank)
+    return out
+
+
+def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CHECKPOINT_DIR) -> dict:
+    """Train R_L for ``config.garment`` on top of its frozen R_G; write ``out_dir/<garment>/wrinkle.pt``."""
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    gen = torch.Generator().manual_seed(config.seed)
+    body = BodyModel.load()
+    asset = GarmentCatalog.load().get(config.garment)
+    cloth = ClothGeometry.from_asset(asset, torch.float32)
+    neutral = body.shape(NEUTRAL_PHENOTYPES[None])
+
+    t_bank = time.perf_counter()
+    fit_path = out_dir / config.garment / ("fit_smoke.pt" if smoke else "fit.pt")
+    fit_model, fit_record = load_fit(fit_path)
+    for p in fit_model.parameters():
+        p.requires_grad_(False)
+    basis = harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")
+    bank = ShapeBank.build(body, asset, sample_adult_phenotypes(config.bank_shapes, rng), config.candidates)
+    val_phen = np.concatenate([NEUTRAL_PHENOTYPES[None], sample_adult_phenotypes(config.validation_shapes - 1, np.random.default_rng(config.seed + 2), corners=False)])
+    val_bank = ShapeBank.build(body, asset, val_phen, config.candidates)
+
+    def fitted_for(b: ShapeBank) -> np.ndarray:
+        with torch.no_grad():
+            return b.retarget + fit_model(torch.as_tensor(b.phenotypes)).numpy()
+
+    fitted, val_fitted = fitted_for(bank), fitted_for(val_bank)
+    motions = MotionBank.cached(config.clips, body, neutral, config.max_clip_frames)
+    val_motions = MotionBank.cached((config.validation_clip,), body, neutral, config.max_clip_frames or config.validation_frames)
+    bank_s = time.perf_counter() - t_bank
+    log.info("%s: %d vertices; %d shapes, %d training frames (%d windows) from %s; banks in %.1f s",
+             config.garment, asset.num_vertices, len(bank), len(motions.gamma), len(motions.windows), ",".join(config.clips), bank_s)
+
+    gamma_mean, gamma_std = motions.gamma_statistics()
+    model = WrinkleGRU(basis, gamma_mean, gamma_std, config.hidden, config.layers)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    weights = torch.as_tensor(asset.skin_weights.astype(np.float32))
+    dt_s = 1.0 / motions.fps
+
+    budget_s = config.minutes * 60.0
+    t0 = time.perf_counter()
+    step, history = 0, []
+    while step < config.max_steps and time.perf_counter() - t0 < budget_s:
+        progress = max((time.perf_counter() - t0) / budget_s, step / config.max_steps)
+        for g in opt.param_groups:  # SNUG §5.3.1: 1e-3, then 1e-4
+            g["lr"] = config.lr if progress < config.lr_drop else config.lr_final
+        starts = rng.choice(motions.windows, config.batch_size)
+        shape_idx = rng.integers(0, len(bank), config.batch_size)  # a new random shape per window
+        batch = make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, WINDOW_FRAMES))
+        h0 = model.initial_state(config.batch_size, config.h0_std, gen)  # h0 ~ N(0, 0.1)
+        x = garment_frames(model, batch, weights, h0)
+        loss, terms = snug_loss(cloth, x, batch, dt_s)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        opt.step()
+        step += 1
+        if step % config.log_every == 0 or step == 1:
+            history.append({"step": step, "seconds": time.perf_counter() - t0, "loss_j": float(loss.detach()), **{k: float(v.detach().mean()) for k, v in terms.items()}})
+            log.info("step %d %.0f s: L %.5f J (%s)", step, history[-1]["seconds"], float(loss.detach()), ", ".join(f"{k} {float(v.detach().mean()):.5f}" for k, v in terms.items()))
+    wall_s = time.perf_counter() - t0
+
+    model.eval()
+    t_val = time.perf_counter()
+    metrics = {"validation": validate(model, cloth, body, val_bank, val_fitted, val_motions, weights, config.validation_frames)}
+    metrics["validation"]["clip"] = config.validation_clip
+    log.info("validation %s (%.0f s): learned static %.5f J/frame, inertia %.6f; fit-only static %.5f, inertia %.6f",
+             config.validation_clip, time.perf_counter() - t_val,
+             metrics["validation"]["learned"]["static_j_per_frame"], metrics["validation"]["learned"]["inertia_j_per_frame"],
+             metrics["validation"]["fit_only"]["static_j_per_frame"], metrics["validation"]["fit_only"]["inertia_j_per_frame"])
+    record = {
+        "model": "wrinkle",
+        "config": asdict(config),
+        "smoke": smoke,
+        "steps": step,
+        "train_wall_s": wall_s,
+        "bank_build_s": bank_s,
+        "training_frames": int(len(motions.gamma)),
+        "training_windows": int(len(motions.windows)),
+        "fit_checkpoint": {"path": str(fit_path.relative_to(out_dir)) if fit_path.is_relative_to(out_dir) else str(fit_path), "git_commit": fit_record.get("git_commit")},
+        "metrics": metrics,
+        "history": history,
+        "git_commit": git_commit(),
+        "torch": torch.__version__,
+    }
+    path = out_dir / config.garment / ("wrinkle_smoke.pt" if smoke else "wrinkle.pt")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"record": record, "state_dict": model.state_dict(), "basis": basis, "gamma_mean": gamma_mean, "gamma_std": gamma_std,
+                "hidden": config.hidden, "layers": config.layers}, path)
+    log.info("wrote %s (%d steps, %.1f min)", path, step, wall_s / 60)
+    return record
+
+
+def load_wrinkle(path: Path) -> tuple[WrinkleGRU, dict]:
+    """A trained R_L and its record from a ``wrinkle.pt`` checkpoint."""
+    ck = torch.load(path, weights_only=False)
+    model = WrinkleGRU(ck["basis"], ck["gamma_mean"], ck["gamma_std"], ck["hidden"], ck["layers"])
+    model.load_state_dict(ck["state_dict"])
+    return model.eval(), ck["record"]
+
+
+# CI smoke run: a few steps on two short clips and a tiny bank.
+SMOKE = dict(minutes=0.5, max_steps=3, bank_shapes=3, basis_size=8, hidden=16, layers=2, batch_size=2, clips=("02_03",),
+             validation_shapes=1, validation_frames=6, max_clip_frames=8, log_every=1)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--garment", required=True)
+    p.add_argument("--minutes", type=float, default=WrinkleConfig.minutes)
+    p.add_argument("--max-steps", type=int, default=WrinkleConfig.max_steps)
+    p.add_argument("--threads", type=int, default=WrinkleConfig.threads)
+    p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank and a short clip (CI); needs fit_smoke.pt")
+    p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads)
+    if args.smoke:
+        kw.update(SMOKE)
+    record = train_wrinkle(WrinkleConfig(**kw), smoke=args.smoke, out_dir=args.out)
+    log.info("metrics: %s", json.dumps(record["metrics"], indent=1))
+
+
+if __name__ == "__main__":
+    main()
