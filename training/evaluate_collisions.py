@@ -61,8 +61,8 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
         for gid in garments or catalog.ids():
             g = catalog.get(gid)
             t0 = time.perf_counter()
-            raw = drape(body, shape, motion, [g], DrapeOptions(fit=fit, guard=False), neutral=neutral)
-            guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, guard=True), neutral=neutral)
+            raw = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=False), neutral=neutral)
+            guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=True), neutral=neutral)
             _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
             body_verts = body.skin(shape.rest_vertices, transforms[:, ::every])
             before = collision_rates(raw.garments[0].vertices[None, ::every], body_verts, body.faces)
