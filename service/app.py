@@ -1,28 +1,60 @@
-"""FastAPI application factory; the lifespan loads the body model, catalog and clips once."""
+"""FastAPI application factory; the lifespan loads the runtime once, starts the worker pool and
+the job backend, and drains them on shutdown."""
 from __future__ import annotations
 
+import asyncio
 import logging
+import time
+import uuid
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 
+from service.auth import ApiKeyAuth
+from service.cache import ResultCache
 from service.config import Settings
 from service.errors import install_problem_handlers
 from service.limits import install_body_size_limit
-from service.routes import body_model, drape, garments, health, motions
+from service.logs import REQUEST_ID_PATTERN, request_id_var
+from service.metrics import Metrics
+from service.pool import WorkerPool
+from service.routes import body_model, drape, garments, health, jobs, metrics, motions
 from service.runtime import Runtime
 from service.schemas import Problem
 
 log = logging.getLogger(__name__)
+access_log = logging.getLogger("service.access")
 
-API_VERSION = "0.1.0"
-DESCRIPTION = """\
+API_VERSION = "0.2.0"
+
+
+def description(s: Settings) -> str:
+    return f"""\
 3D virtual try-on: animated, skinned, collision-free garments on a parametric body (anny, rig cmu_mb).
 
-Errors are RFC 9457 `application/problem+json`. Limits per request (defaults; see the service
-settings): body <= 8 MiB, BVH text <= 4 MiB, <= 20,000 source frames, <= 300 output frames,
-<= 4 garments. Units: metres, seconds, radians; body model axes Z-up (glb output is Y-up).
+Errors are RFC 9457 `application/problem+json` (no stack traces). Every response carries
+`X-Request-ID` (the client's, when it sends a valid one). Units: metres, seconds, radians; body
+model axes Z-up (glb output is Y-up).
+
+Limits per request (defaults; deployments may change them, see the service settings):
+
+| limit | POST /v1/drape | POST /v1/jobs |
+|---|---|---|
+| request body | {s.max_request_bytes} bytes | {s.job_max_request_bytes} bytes |
+| BVH text | {s.max_bvh_bytes} bytes | {s.max_bvh_bytes} bytes |
+| source frames (poses, BVH) | {s.max_source_frames} | {s.max_source_frames} |
+| output frames (after resampling) | {s.max_frames} | {s.job_max_frames} |
+| garments | {s.max_garments} | {s.max_garments} |
+| total vertices (frames x (garment vertices + body vertices if included)) | {s.max_total_vertices} | {s.job_max_total_vertices} |
+| time | {s.request_timeout_s:g} s (504 after) | {s.job_timeout_s:g} s |
+
+Load: synchronous drapes wait in a bounded queue ({s.max_queue} requests); when it is full the
+answer is 503 with `Retry-After`. Job results are kept {s.job_result_ttl_s:g} s.
+
+Auth (when the deployment configures API keys): send the key in the `{s.api_key_header}` header;
+a missing key is 401, a wrong one 403. `/healthz`, `/readyz` and `/metrics` are open.
 """
 
 
@@ -31,20 +63,92 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        if app.state.runtime is None:
-            app.state.runtime = Runtime.load(settings)
-        log.info("runtime ready: %d garments, %d motions", len(app.state.runtime.catalog.ids()), len(app.state.runtime.clips.ids()))
-        yield
+        state = app.state
+        if state.runtime is None:
+            state.runtime = await asyncio.to_thread(Runtime.load, settings)
+        state.pool = WorkerPool(settings, state.runtime, state.metrics)
+        await state.pool.start()
+        if settings.jobs_backend == "sqlite":
+            from service.jobs import JobRunner, SqliteJobStore
 
-    app = FastAPI(title="Try-on service", version=API_VERSION, description=DESCRIPTION, lifespan=lifespan)
+            state.job_store = SqliteJobStore(settings)
+            state.job_runner = JobRunner(state.job_store, state.pool, state.metrics)
+            await state.job_runner.start()
+        elif settings.jobs_backend == "redis":
+            from service.jobs_redis import RedisJobStore
+
+            state.job_store = RedisJobStore(settings)
+        log.info("ready: %d garments, %d motions, jobs=%s", len(state.runtime.catalog.ids()), len(state.runtime.clips.ids()), settings.jobs_backend)
+        try:
+            yield
+        finally:
+            if state.job_runner is not None:
+                await state.job_runner.stop()
+            await state.pool.close()
+            if state.job_store is not None:
+                state.job_store.close()
+            log.info("stopped")
+
+    app = FastAPI(title="Try-on service", version=API_VERSION, description=description(settings), lifespan=lifespan)
     app.state.settings = settings
     app.state.runtime = runtime
+    app.state.metrics = Metrics()
+    app.state.cache = ResultCache(settings.cache_max_bytes)
+    app.state.pool = None
+    app.state.job_store = None
+    app.state.job_runner = None
     install_problem_handlers(app)
-    install_body_size_limit(app, settings.max_request_bytes)
-    for module in (garments, body_model, motions, drape, health):
+    # Middleware, innermost first: body size -> auth -> CORS -> request context (outermost).
+    install_body_size_limit(app, settings.max_request_bytes, {"/v1/jobs": settings.job_max_request_bytes})
+    keys = settings.api_key_set()
+    if keys:
+        app.add_middleware(ApiKeyAuth, keys=keys, header=settings.api_key_header)
+    origins = settings.cors_origin_list()
+    if origins:
+        app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["GET", "POST", "DELETE", "OPTIONS"],
+                           allow_headers=["content-type", settings.api_key_header, "x-request-id", "if-none-match"],
+                           expose_headers=["etag", "location", "retry-after", "x-request-id", "x-frames", "x-cache", "server-timing"], max_age=600)
+    app.add_middleware(RequestContext, metrics=app.state.metrics)
+    for module in (garments, body_model, motions, drape, jobs, health, metrics):
         app.include_router(module.router, responses=COMMON_ERRORS)
     app.openapi = lambda: problem_openapi(app)
     return app
+
+
+class RequestContext:
+    """Request id (X-Request-ID in and out), one structured access-log line, and the HTTP
+    metrics (by route template, so the label set stays bounded)."""
+
+    def __init__(self, app, metrics: Metrics):
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        given = dict(scope.get("headers") or []).get(b"x-request-id", b"").decode("latin-1")
+        rid = given if REQUEST_ID_PATTERN.match(given) else uuid.uuid4().hex
+        token = request_id_var.set(rid)
+        status = 500
+        t0 = time.perf_counter()
+
+        async def send_with_id(message):
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", rid.encode())]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_with_id)
+        finally:
+            route = scope.get("route")
+            template = getattr(route, "path", None) or "unmatched"
+            elapsed = time.perf_counter() - t0
+            self.metrics.requests.labels(template, scope["method"], str(status)).inc()
+            self.metrics.latency.labels(template, scope["method"]).observe(elapsed)
+            access_log.info("%s %s %d %.1f ms", scope["method"], scope["path"], status, elapsed * 1e3,
+                            extra={"route": template, "status": status, "method": scope["method"], "duration_ms": round(elapsed * 1e3, 1)})
+            request_id_var.reset(token)
 
 
 COMMON_ERRORS = {
@@ -54,18 +158,28 @@ COMMON_ERRORS = {
 
 
 def problem_openapi(app: FastAPI) -> dict:
-    """The app's OpenAPI document, with every 4xx/5xx answer documented as problem+json."""
+    """The app's OpenAPI document, with every 4xx/5xx answer documented as problem+json, and the
+    optional API-key scheme (401/403) on the /v1 routes."""
     if app.openapi_schema is None:
+        settings = app.state.settings
         schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
         problem_ref = {"$ref": "#/components/schemas/Problem"}
-        components = schema.setdefault("components", {}).setdefault("schemas", {})
-        components.update(Problem.model_json_schema(ref_template="#/components/schemas/{model}")["$defs"])
-        components["Problem"] = {k: v for k, v in Problem.model_json_schema(ref_template="#/components/schemas/{model}").items() if k != "$defs"}
+        components = schema.setdefault("components", {})
+        schemas = components.setdefault("schemas", {})
+        schemas.update(Problem.model_json_schema(ref_template="#/components/schemas/{model}")["$defs"])
+        schemas["Problem"] = {k: v for k, v in Problem.model_json_schema(ref_template="#/components/schemas/{model}").items() if k != "$defs"}
         for name in ("HTTPValidationError", "ValidationError"):
-            components.pop(name, None)
-        for item in schema["paths"].values():
+            schemas.pop(name, None)
+        components["securitySchemes"] = {"ApiKey": {"type": "apiKey", "in": "header", "name": settings.api_key_header,
+                                                    "description": "only when the deployment configures API keys"}}
+        for path, item in schema["paths"].items():
             for operation in item.values():
-                for status, response in operation.get("responses", {}).items():
+                responses = operation.get("responses", {})
+                if path.startswith("/v1/"):
+                    operation["security"] = [{}, {"ApiKey": []}]  # optional: no key, or the key
+                    responses.setdefault("401", {"description": "API key missing (when keys are configured)"})
+                    responses.setdefault("403", {"description": "API key not valid"})
+                for status, response in responses.items():
                     if status[0] in "45":
                         response["content"] = {"application/problem+json": {"schema": problem_ref}}
         app.openapi_schema = schema

@@ -6,6 +6,7 @@ Every error the service returns goes through here: validation errors name the re
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -29,6 +30,35 @@ class ProblemException(Exception):
         self.status, self.title, self.detail = status, title, detail
         self.errors = errors or []
         self.headers = headers or {}
+
+
+@dataclass(frozen=True)
+class ProblemDetail:
+    """A problem document's fields: picklable, so that a worker process can send it back."""
+
+    status: int
+    title: str
+    detail: str
+    errors: list[dict] = field(default_factory=list)
+    headers: dict[str, str] = field(default_factory=dict)
+
+    def exception(self) -> "ProblemException":
+        return ProblemException(self.status, self.title, self.detail, list(self.errors), dict(self.headers))
+
+
+def problem_from_exception(exc: BaseException) -> ProblemDetail:
+    """The problem document for an exception raised while serving a request (one mapping for
+    the app's handlers and the worker processes); unknown exceptions become a bare 500."""
+    if isinstance(exc, ProblemException):
+        return ProblemDetail(exc.status, exc.title, exc.detail, exc.errors, exc.headers)
+    if isinstance(exc, UnknownAssetError):
+        pointer = {"motion.clip": "/body/motion/clip"}.get(exc.field, exc.field)
+        return ProblemDetail(422, "Unknown asset", str(exc), [{"pointer": pointer, "detail": exc.detail}])
+    if isinstance(exc, MotionFormatError):
+        return ProblemDetail(422, "Malformed motion", str(exc)[:1000], [{"pointer": "/body/motion", "detail": str(exc)[:1000]}])
+    if isinstance(exc, InferenceInputError):
+        return ProblemDetail(422, "Invalid input", str(exc), [{"pointer": exc.field, "detail": exc.detail}])
+    return ProblemDetail(500, "Internal error", "the server failed to process the request")
 
 
 def problem_response(status: int, title: str, detail: str, instance: str = "", errors: list[dict] | None = None, headers: dict | None = None) -> JSONResponse:
@@ -61,18 +91,10 @@ def install_problem_handlers(app: FastAPI) -> None:
         first = errors[0]["pointer"] if errors else "request"
         return problem_response(422, "Invalid request", f"{len(exc.errors())} invalid field(s), first: {first}", request.url.path, errors)
 
-    @app.exception_handler(UnknownAssetError)
-    async def _unknown(request: Request, exc: UnknownAssetError):
-        pointer = {"motion.clip": "/body/motion/clip"}.get(exc.field, exc.field)
-        return problem_response(422, "Unknown asset", str(exc), request.url.path, [{"pointer": pointer, "detail": exc.detail}])
-
     @app.exception_handler(InferenceInputError)
     async def _inference_input(request: Request, exc: InferenceInputError):
-        return problem_response(422, "Invalid input", str(exc), request.url.path, [{"pointer": exc.field, "detail": exc.detail}])
-
-    @app.exception_handler(MotionFormatError)
-    async def _motion_format(request: Request, exc: MotionFormatError):
-        return problem_response(422, "Malformed motion", str(exc)[:1000], request.url.path, [{"pointer": "/body/motion", "detail": str(exc)[:1000]}])
+        p = problem_from_exception(exc)
+        return problem_response(p.status, p.title, p.detail, request.url.path, p.errors, p.headers)
 
     @app.exception_handler(ProblemException)
     async def _problem(request: Request, exc: ProblemException):
@@ -81,9 +103,23 @@ def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
         title = {400: "Bad request", 404: "Not found", 405: "Method not allowed", 413: "Request too large"}.get(exc.status_code, "HTTP error")
-        return problem_response(exc.status_code, title, str(exc.detail), request.url.path, headers=getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:  # every method of every route on this path (Starlette names only the first route's)
+            headers["Allow"] = ", ".join(_allowed_methods(request))
+        return problem_response(exc.status_code, title, str(exc.detail), request.url.path, headers=headers or None)
 
     @app.exception_handler(Exception)
     async def _internal(request: Request, exc: Exception):
         log.exception("unhandled error on %s", request.url.path)
         return problem_response(500, "Internal error", "the server failed to process the request", request.url.path)
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    from starlette.routing import Match
+
+    methods: set[str] = set()
+    for route in request.app.routes:
+        match, _ = route.matches({**request.scope, "method": "GET"})
+        if match != Match.NONE and getattr(route, "methods", None):
+            methods |= set(route.methods)
+    return sorted(methods)

@@ -11,16 +11,18 @@ from service.errors import PROBLEM_JSON
 class BodySizeLimit:
     """Answers 413 problem+json when a request body exceeds ``max_bytes`` (declared or streamed)."""
 
-    def __init__(self, app, max_bytes: int):
+    def __init__(self, app, max_bytes: int, path_limits: dict[str, int] | None = None):
         self.app = app
-        self.max_bytes = max_bytes
+        self.default_bytes = max_bytes
+        self.path_limits = path_limits or {}
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
+        max_bytes = self.path_limits.get(scope.get("path", ""), self.default_bytes)
         declared = dict(scope.get("headers") or []).get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
-            return await self._reject(scope, send)
+        if declared is not None and (not declared.isdigit() or int(declared) > max_bytes):
+            return await self._reject(scope, send, max_bytes)
         received = 0
         too_large = False
 
@@ -29,7 +31,7 @@ class BodySizeLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.max_bytes:
+                if received > max_bytes:
                     too_large = True
                     raise _TooLarge()
             return message
@@ -37,12 +39,12 @@ class BodySizeLimit:
         try:
             await self.app(scope, limited_receive, send)
         except _TooLarge:
-            await self._reject(scope, send)
+            await self._reject(scope, send, max_bytes)
 
-    async def _reject(self, scope, send):
+    async def _reject(self, scope, send, max_bytes: int):
         body = json.dumps(
             {"type": "about:blank", "title": "Request too large", "status": 413,
-             "detail": f"request body exceeds {self.max_bytes} bytes", "instance": scope.get("path", "")}
+             "detail": f"request body exceeds {max_bytes} bytes", "instance": scope.get("path", "")}
         ).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(body)).encode())]})
@@ -53,5 +55,6 @@ class _TooLarge(Exception):
     pass
 
 
-def install_body_size_limit(app: FastAPI, max_bytes: int) -> None:
-    app.add_middleware(BodySizeLimit, max_bytes=max_bytes)
+def install_body_size_limit(app: FastAPI, max_bytes: int, path_limits: dict[str, int] | None = None) -> None:
+    """``max_bytes`` for every path, except those named in ``path_limits`` (POST /v1/jobs)."""
+    app.add_middleware(BodySizeLimit, max_bytes=max_bytes, path_limits=path_limits)

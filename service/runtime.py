@@ -1,30 +1,32 @@
-"""What the service holds in memory (body model, garment catalog, clips) and the drape job.
+"""What the service holds in memory (body model, garment catalog, clips) and the drape work.
 
-Requests are turned into pipeline inputs here (motion import, retargeting, resampling, frame
-limits), run in worker threads with bounded concurrency and a bounded wait queue, and encoded
-as glb or npz.
+Requests are turned into pipeline inputs here (motion import, retargeting, resampling, frame and
+vertex limits), run through the pipeline (several compatible requests merged into one call, see
+``drape_batch``), and encoded as glb or npz. This runs inside the worker pool (service/pool.py),
+never on the event loop.
 """
 from __future__ import annotations
 
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
-import anyio
 import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
 from inference.errors import InputValueError
 from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
-from inference.garment import GarmentCatalog
+from inference.garment import GarmentAsset, GarmentCatalog
 from inference.motion.bvh import parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion
 from inference.motion.retarget import retarget
-from inference.pipeline import DrapeOptions, PoseSequence, drape
+from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape
+from service.batching import concatenate_results, merge_key, merge_motions, split_result
 from service.config import Settings
-from service.errors import ProblemException
+from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import BvhMotion, ClipMotion, DrapeRequest, PoseMotion
 
 log = logging.getLogger(__name__)
@@ -34,10 +36,42 @@ BVH_UNITS = {"auto": None, "metres": 1.0, "centimetres": 0.01, "inches": 0.0254,
 MODEL_VERSIONS = {"body": "anny-0.6.2-cmu_mb", "fit": "mhclo-retarget", "dynamics": "none", "guard": "plane-push-v1"}
 
 
+@dataclass(frozen=True)
+class RequestLimits:
+    """Per-request limits: the synchronous route's, or the (larger) job route's."""
+
+    max_frames: int
+    max_total_vertices: int
+    max_garments: int
+    max_source_frames: int
+    max_bvh_bytes: int
+
+    @classmethod
+    def drape(cls, s: Settings) -> "RequestLimits":
+        return cls(s.max_frames, s.max_total_vertices, s.max_garments, s.max_source_frames, s.max_bvh_bytes)
+
+    @classmethod
+    def job(cls, s: Settings) -> "RequestLimits":
+        return cls(s.job_max_frames, s.job_max_total_vertices, s.max_garments, s.max_source_frames, s.max_bvh_bytes)
+
+
 @dataclass
 class DrapeOutput:
     payload: bytes
     headers: dict[str, str]
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PreparedDrape:
+    """A validated request turned into pipeline inputs."""
+
+    request: DrapeRequest
+    shape: BodyShape
+    motion: PoseSequence
+    assets: list[GarmentAsset]  # layer order
+    options: DrapeOptions
+    t0: float  # perf_counter at the start of the work (for the total time)
 
 
 class Runtime:
@@ -47,8 +81,6 @@ class Runtime:
         self.catalog = catalog
         self.clips = clips
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
-        self._limiter = anyio.CapacityLimiter(settings.max_concurrent_drapes)
-        self._waiting = 0
 
     @classmethod
     def load(cls, settings: Settings) -> "Runtime":
@@ -65,10 +97,10 @@ class Runtime:
         p = request.body.phenotypes
         return np.array([getattr(p, name) for name in PHENOTYPE_LABELS], np.float32)
 
-    def _motion(self, request: DrapeRequest, shape: BodyShape) -> PoseSequence:
+    def _motion(self, request: DrapeRequest, shape: BodyShape, limits: RequestLimits | None = None) -> PoseSequence:
         """The request's motion on this body, at the requested fps, within the frame limit."""
         m, fps = request.motion, request.options.fps
-        s = self.settings
+        s = limits or RequestLimits.drape(self.settings)
         if isinstance(m, ClipMotion):
             clip = self.clips.load(m.clip)
             start = int(round(m.start_s * clip.fps))
@@ -100,15 +132,16 @@ class Runtime:
             result = retarget(source, self.body, shape, fps=fps)
             rotations, translation = result.rotations, result.translation
         if len(rotations) > s.max_frames:
-            raise InputValueError("/body/motion", f"{len(rotations)} frames at {fps:g} fps exceed the limit of {s.max_frames}; shorten the motion or lower options.fps")
+            raise InputValueError("/body/motion", f"{len(rotations)} frames at {fps:g} fps exceed the limit of {s.max_frames}; shorten the motion, lower options.fps or use POST /v1/jobs")
         return PoseSequence(np.ascontiguousarray(rotations, np.float32), np.ascontiguousarray(translation, np.float32), fps)
 
-    def run_drape(self, request: DrapeRequest) -> DrapeOutput:
-        """The whole request, synchronously (called in a worker thread)."""
-        t0 = time.perf_counter()
+    def check_request(self, request: DrapeRequest, limits: RequestLimits | None = None) -> list[GarmentAsset]:
+        """The request's garments in layer order (raises a 422 input error for unknown garment or clip ids,
+        duplicates, too many); cheap, so the API checks it before accepting a job."""
+        limits = limits or RequestLimits.drape(self.settings)
         ids = [g.id for g in request.garments]
-        if len(ids) > self.settings.max_garments:
-            raise InputValueError("/body/garments", f"at most {self.settings.max_garments} garments per request")
+        if len(ids) > limits.max_garments:
+            raise InputValueError("/body/garments", f"at most {limits.max_garments} garments per request")
         if len(set(ids)) != len(ids):
             raise InputValueError("/body/garments", "a garment is listed twice")
         assets = []
@@ -117,14 +150,45 @@ class Runtime:
                 raise InputValueError(f"/body/garments/{i}/id", f"unknown garment {gid!r}; see GET /v1/garments")
             assets.append(self.catalog.get(gid))
         # Layer order: the catalog's default layer, then the request's order (stable).
-        assets = [a for _, _, a in sorted((a.layer, i, a) for i, a in enumerate(assets))] if len(assets) > 1 else assets
+        if isinstance(request.motion, ClipMotion) and request.motion.clip not in self.clips.ids():
+            raise InputValueError("/body/motion/clip", f"unknown clip {request.motion.clip!r}; see GET /v1/motions")
+        return [a for _, _, a in sorted((a.layer, i, a) for i, a in enumerate(assets))] if len(assets) > 1 else assets
 
+    def prepare(self, request: DrapeRequest, limits: RequestLimits | None = None) -> PreparedDrape:
+        """Validate the request against the catalog and the limits; import its motion."""
+        t0 = time.perf_counter()
+        limits = limits or RequestLimits.drape(self.settings)
+        assets = self.check_request(request, limits)
         shape = self.body.shape(self._phenotypes(request)[None])
-        motion = self._motion(request, shape)
+        motion = self._motion(request, shape, limits)
         o = request.options
+        per_frame = sum(a.num_vertices for a in assets) + (self.body.num_vertices if o.include_body else 0)
+        if motion.num_frames * per_frame > limits.max_total_vertices:
+            raise InputValueError(
+                "/body", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
+            )
         options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body)
-        result = drape(self.body, shape, motion, assets, options, neutral=self.neutral_shape)
+        return PreparedDrape(request, shape, motion, assets, options, t0)
 
+    def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:
+        """Run the pipeline for several prepared requests: requests with the same merge key (same
+        body, garments and options) go through one ``drape`` call on their concatenated frames."""
+        groups: dict[object, list[int]] = {}
+        for i, p in enumerate(prepared):
+            key = merge_key(p.request)
+            groups.setdefault(key if key is not None else ("solo", i), []).append(i)
+        results: list[DrapeResult | None] = [None] * len(prepared)
+        for members in groups.values():
+            first = prepared[members[0]]
+            motion = merge_motions([prepared[i].motion for i in members])
+            merged = drape(self.body, first.shape, motion, first.assets, first.options, neutral=self.neutral_shape)
+            for i, r in zip(members, split_result(merged, [prepared[i].motion for i in members])):
+                results[i] = r
+        return results  # type: ignore[return-value]
+
+    def export(self, p: PreparedDrape, result: DrapeResult) -> DrapeOutput:
+        """Encode one request's result as glb or npz."""
+        request, shape, motion, o = p.request, p.shape, p.motion, p.request.options
         t_export = time.perf_counter()
         metadata = {
             "frames": motion.num_frames,
@@ -148,24 +212,67 @@ class Runtime:
             payload = write_glb(tracks, body_track, motion.fps, metadata=metadata)
         else:
             payload = write_npz(tracks, body_track, motion.fps, metadata=metadata)
-        timings = {**result.timings_ms, "export": (time.perf_counter() - t_export) * 1e3, "total": (time.perf_counter() - t0) * 1e3}
-        log.info("drape %s frames=%d %s", ids, motion.num_frames, json.dumps({k: round(v, 1) for k, v in timings.items()}))
+        timings = {**result.timings_ms, "export": (time.perf_counter() - t_export) * 1e3, "total": (time.perf_counter() - p.t0) * 1e3}
+        log.info("drape %s frames=%d %s", [a.id for a in p.assets], motion.num_frames, json.dumps({k: round(v, 1) for k, v in timings.items()}))
         headers = {
             "X-Frames": str(motion.num_frames),
             "Server-Timing": ", ".join(f"{k};dur={v:.1f}" for k, v in timings.items()),
         }
-        return DrapeOutput(payload=payload, headers=headers)
+        return DrapeOutput(payload=payload, headers=headers, timings_ms=timings)
 
-    async def drape(self, request: DrapeRequest) -> DrapeOutput:
-        """Run a drape in a worker thread; 503 when too many requests already wait for one."""
-        if self._limiter.borrowed_tokens >= self._limiter.total_tokens and self._waiting >= self.settings.max_waiting_drapes:
-            raise ProblemException(503, "Busy", "too many drape requests in flight; retry later", headers={"Retry-After": "1"})
-        self._waiting += 1
+    def run_drape(self, request: DrapeRequest) -> DrapeOutput:
+        """One request, synchronously (raises the runtime's input errors)."""
+        p = self.prepare(request)
+        return self.export(p, self.drape_batch([p])[0])
+
+    def run_batch(self, requests: list[DrapeRequest]) -> list[DrapeOutput | ProblemDetail]:
+        """A batch from the scheduler: one outcome per request, never an exception (a bad request
+        answers its own problem; the others still run)."""
+        outcomes: list[DrapeOutput | ProblemDetail | None] = [None] * len(requests)
+        prepared, index = [], []
+        for i, r in enumerate(requests):
+            try:
+                prepared.append(self.prepare(r))
+                index.append(i)
+            except Exception as exc:  # noqa: BLE001 - every failure becomes this request's problem
+                outcomes[i] = _problem(exc)
         try:
-            await self._limiter.acquire()
-        finally:
-            self._waiting -= 1
-        try:
-            return await anyio.to_thread.run_sync(self.run_drape, request)
-        finally:
-            self._limiter.release()
+            results = self.drape_batch(prepared)
+        except Exception:  # noqa: BLE001 - one bad member must not fail the batch: run them alone
+            results = []
+            for p in prepared:
+                try:
+                    results.append(self.drape_batch([p])[0])
+                except Exception as exc:  # noqa: BLE001
+                    results.append(exc)
+        for i, p, r in zip(index, prepared, results):
+            try:
+                outcomes[i] = _problem(r) if isinstance(r, Exception) else self.export(p, r)
+            except Exception as exc:  # noqa: BLE001
+                outcomes[i] = _problem(exc)
+        return outcomes  # type: ignore[return-value]
+
+    def run_job(self, request: DrapeRequest, progress: Callable[[int, int], bool] | None = None) -> DrapeOutput | None:
+        """A long request in chunks of ``job_chunk_frames`` frames; ``progress(done, total)`` is
+        called after each chunk and returns True to cancel (then the result is None)."""
+        p = self.prepare(request, RequestLimits.job(self.settings))
+        total, chunk = p.motion.num_frames, self.settings.job_chunk_frames
+        if progress is not None and progress(0, total):
+            return None
+        parts = []
+        for start in range(0, total, chunk):
+            m = p.motion
+            part = PreparedDrape(p.request, p.shape, PoseSequence(m.rotations[start:start + chunk], m.translation[start:start + chunk], m.fps),
+                                 p.assets, p.options, p.t0)
+            parts.append((part, self.drape_batch([part])[0]))
+            if progress is not None and progress(min(start + chunk, total), total):
+                return None
+        merged = concatenate_results([r for _, r in parts], p.motion.fps)
+        return self.export(p, merged)
+
+
+def _problem(exc: BaseException) -> ProblemDetail:
+    problem = problem_from_exception(exc)
+    if problem.status >= 500:
+        log.error("drape failed", exc_info=exc)
+    return problem

@@ -168,6 +168,9 @@ class ReadyResponse(BaseModel):
     status: str
     garments: int
     motions: int
+    workers: list["ReadyWorker"] = Field(default_factory=list)
+    queue_depth: int = 0
+    jobs_backend: str = "off"
 
 
 class ProblemFieldError(BaseModel):
@@ -185,3 +188,30 @@ class Problem(BaseModel):
     detail: str
     instance: str | None = None
     errors: list[ProblemFieldError] | None = None
+
+
+class JobProgress(BaseModel):
+    frames_done: int
+    frames_total: int | None = Field(None, description="known once the motion is imported")
+    fraction: float = Field(description="frames_done / frames_total (0 while unknown)")
+
+
+class JobResponse(BaseModel):
+    """An asynchronous drape (POST /v1/jobs): its state, progress, and where its result is."""
+
+    id: str
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    format: Literal["glb", "npz"]
+    progress: JobProgress
+    created_at: float = Field(description="unix time, seconds")
+    finished_at: float | None = None
+    expires_at: float | None = Field(None, description="unix time after which the job and its result are deleted")
+    result_url: str | None = Field(None, description="GET it for the output (state succeeded)")
+    result_bytes: int | None = None
+    error: Problem | None = Field(None, description="why the job failed")
+
+
+class ReadyWorker(BaseModel):
+    index: int
+    pid: int | None
+    alive: bool

@@ -4,6 +4,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Body, Request
 from fastapi.responses import Response
 
+from service.cache import etag_matches, etag_of, request_key
 from service.schemas import DRAPE_EXAMPLE, DrapeRequest
 
 router = APIRouter(prefix="/v1", tags=["drape"])
@@ -17,19 +18,30 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
     response_class=Response,
     responses={
         200: {
-            "description": "the animated garments (and body): glb (Y-up, metres, morph-target animation) or npz (float32 arrays, Z-up)",
+            "description": "the animated garments (and body): glb (Y-up, metres, morph-target animation) or npz (float32 arrays, Z-up). "
+                           "ETag: a weak tag of the request and the model versions (content-addressed).",
             "content": {"model/gltf-binary": {}, "application/x-npz": {}},
+            "headers": {"ETag": {"schema": {"type": "string"}}, "X-Cache": {"schema": {"type": "string", "enum": ["hit", "miss", "coalesced"]}}},
         },
+        304: {"description": "If-None-Match names this request's ETag: the client's copy is current"},
         400: {"description": "the body is not parseable JSON", **_PROBLEM},
         413: {"description": "request body too large", **_PROBLEM},
         422: {"description": "invalid request: the problem names the field", **_PROBLEM},
-        503: {"description": "busy: retry after the Retry-After seconds", **_PROBLEM},
+        503: {"description": "busy (queue full) or shutting down: retry after the Retry-After seconds", **_PROBLEM},
+        504: {"description": "the drape did not finish within the request deadline", **_PROBLEM},
     },
 )
 async def post_drape(
     request: Request,
     drape_request: DrapeRequest = Body(openapi_examples={"walk_tshirt": {"summary": "neutral body, walk clip, T-shirt", "value": DRAPE_EXAMPLE}}),
 ) -> Response:
-    runtime = request.app.state.runtime
-    result = await runtime.drape(drape_request)
-    return Response(content=result.payload, media_type=MEDIA_TYPES[drape_request.format], headers=result.headers)
+    state = request.app.state
+    key = request_key(drape_request, request.app.version)
+    etag = etag_of(key)
+    if etag_matches(request.headers.get("if-none-match"), key):
+        state.metrics.cache.labels("not_modified").inc()
+        return Response(status_code=304, headers={"ETag": etag})
+    result, how = await state.cache.get_or_compute(key, lambda: state.pool.drape(drape_request))
+    state.metrics.cache.labels(how).inc()
+    headers = {**result.headers, "ETag": etag, "X-Cache": how}
+    return Response(content=result.payload, media_type=MEDIA_TYPES[drape_request.format], headers=headers)

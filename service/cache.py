@@ -1,0 +1,97 @@
+"""Content-addressed result cache: identical requests (same body, motion, garments, options and
+format) on the same model versions get the same output, from memory.
+
+The key is the SHA-256 of the canonical JSON of the validated request plus MODEL_VERSIONS and
+the API version; it doubles as the response's ETag. The ETag is weak (``W/"..."``): a result
+computed inside a merged batch may differ from the solo one at a few guard-pushed vertices
+(service/batching.py), i.e. equivalent, not byte-identical. Concurrent identical requests are
+coalesced: one computes, the others await it (single flight).
+"""
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import json
+import threading
+from collections import OrderedDict
+from typing import Awaitable, Callable
+
+from service.runtime import MODEL_VERSIONS, DrapeOutput
+from service.schemas import DrapeRequest
+
+
+def request_key(request: DrapeRequest, api_version: str) -> str:
+    canonical = json.dumps(
+        {"request": request.model_dump(mode="json"), "models": MODEL_VERSIONS, "api": api_version},
+        sort_keys=True, separators=(",", ":"),
+    )
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def etag_of(key: str) -> str:
+    return f'W/"{key}"'
+
+
+def etag_matches(if_none_match: str | None, key: str) -> bool:
+    """RFC 9110 weak comparison of If-None-Match against this key's ETag ('*' matches)."""
+    if not if_none_match:
+        return False
+    tags = [t.strip() for t in if_none_match.split(",")]
+    return "*" in tags or any(t.removeprefix("W/") == f'"{key}"' for t in tags)
+
+
+class ResultCache:
+    """An LRU of outputs bounded by total payload bytes (0: caching off, coalescing still on)."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self._entries: OrderedDict[str, DrapeOutput] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self._inflight: dict[str, asyncio.Future] = {}
+
+    def get(self, key: str) -> DrapeOutput | None:
+        with self._lock:
+            out = self._entries.get(key)
+            if out is not None:
+                self._entries.move_to_end(key)
+            return out
+
+    def put(self, key: str, out: DrapeOutput) -> None:
+        size = len(out.payload)
+        if size > self.max_bytes:
+            return
+        with self._lock:
+            if key in self._entries:
+                return
+            self._entries[key] = out
+            self._bytes += size
+            while self._bytes > self.max_bytes:
+                _, old = self._entries.popitem(last=False)
+                self._bytes -= len(old.payload)
+
+    @property
+    def size_bytes(self) -> int:
+        return self._bytes
+
+    async def get_or_compute(self, key: str, compute: Callable[[], Awaitable[DrapeOutput]]) -> tuple[DrapeOutput, str]:
+        """(output, 'hit' | 'coalesced' | 'miss')."""
+        out = self.get(key)
+        if out is not None:
+            return out, "hit"
+        waiting = self._inflight.get(key)
+        if waiting is not None:
+            return await asyncio.shield(waiting), "coalesced"
+        future = asyncio.get_running_loop().create_future()
+        self._inflight[key] = future
+        try:
+            out = await compute()
+        except BaseException as exc:
+            future.set_exception(exc)
+            future.exception()  # retrieved: no "never retrieved" warning when nobody waits
+            raise
+        finally:
+            self._inflight.pop(key, None)
+        future.set_result(out)
+        self.put(key, out)
+        return out, "miss"

@@ -1,0 +1,102 @@
+"""Inference workers: the process entry point of the pool's workers, and ``python -m service.worker``,
+the RQ worker of the Redis job backend (docker-compose's ``worker`` service).
+
+A pool worker loads the runtime once, then serves messages from its pipe:
+  ("drape", [DrapeRequest, ...])            -> ("done", [DrapeOutput | ProblemDetail, ...])
+  ("job", DrapeRequest, result_path)        -> ("progress", done, total)* then ("done", JobOutcome | ProblemDetail | None)
+the parent answers each progress message with True to cancel the job.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class JobOutcome:
+    """A finished job: the result is in ``result_path`` (written atomically)."""
+
+    headers: dict[str, str]
+    result_bytes: int
+    frames: int
+    timings_ms: dict[str, float]
+
+
+def write_atomic(path: Path, payload: bytes) -> None:
+    """Write then rename, fsynced: a crash never leaves a partial result under ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(payload)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def execute_job(runtime, request, result_path: Path, progress) -> "JobOutcome | None":
+    """Run one job and store its result; None when ``progress`` asked to cancel."""
+    out = runtime.run_job(request, progress)
+    if out is None:
+        return None
+    write_atomic(Path(result_path), out.payload)
+    return JobOutcome(headers=out.headers, result_bytes=len(out.payload), frames=int(out.headers.get("X-Frames", 0)), timings_ms=out.timings_ms)
+
+
+def serve_pipe(conn, settings) -> None:
+    """Pool worker process main loop (spawned by service.pool.ProcessWorker)."""
+    from service.errors import problem_from_exception
+    from service.logs import configure_logging
+    from service.runtime import Runtime
+
+    configure_logging(settings.log_level, settings.log_json)
+    runtime = Runtime.load(settings)
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the parent is gone
+            return
+        if message is None:
+            return
+        kind = message[0]
+        if kind == "drape":
+            conn.send(("done", runtime.run_batch(message[1])))
+        elif kind == "job":
+            def progress(done: int, total: int) -> bool:
+                conn.send(("progress", done, total))
+                return bool(conn.recv())
+
+            try:
+                conn.send(("done", execute_job(runtime, message[1], message[2], progress)))
+            except Exception as exc:  # noqa: BLE001 - the job's problem, the worker lives on
+                problem = problem_from_exception(exc)
+                if problem.status >= 500:
+                    log.error("job failed", exc_info=exc)
+                conn.send(("done", problem))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m service.worker``: an RQ worker for the Redis job backend. The runtime is loaded
+    once here; RQ forks a work-horse per job, which inherits it (copy-on-write)."""
+    from service.config import Settings
+    from service.jobs_redis import run_rq_worker
+    from service.logs import configure_logging
+
+    defaults = Settings()
+    parser = argparse.ArgumentParser(prog="python -m service.worker", description="Run a job worker on the Redis queue.")
+    parser.add_argument("--redis-url", default=defaults.redis_url, help="env TRYON_REDIS_URL")
+    parser.add_argument("--queue", default=defaults.redis_queue, help="env TRYON_REDIS_QUEUE")
+    parser.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    args = parser.parse_args(argv)
+    settings = defaults.model_copy(update={"redis_url": args.redis_url, "redis_queue": args.queue})
+    configure_logging(settings.log_level, settings.log_json)
+    run_rq_worker(settings, burst=args.burst)
+
+
+if __name__ == "__main__":
+    main()
