@@ -1,0 +1,137 @@
+"""Asynchronous jobs, embedded backend (SQLite + result files): 202 + Location, progress,
+result, cancel, larger limits, expiry, and re-queueing of jobs orphaned by a dead process."""
+from __future__ import annotations
+
+import io
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.config import Settings
+from service.jobs import SqliteJobStore
+from service.schemas import DrapeRequest
+
+FAST = {"include_body": False, "guard": False}
+
+
+def job_body(frames=40, clip="dance", fmt="npz", **options):
+    return {"motion": {"type": "clip", "clip": clip, "duration_s": (frames - 1) / 30.0}, "garments": [{"id": "tshirt"}],
+            "format": fmt, "options": {**FAST, **options}}
+
+
+def make_settings(tmp_path, **kw) -> Settings:
+    return Settings().model_copy(update={"worker_mode": "thread", "workers": 1, "jobs_dir": tmp_path / "jobs", "job_poll_s": 0.05,
+                                         "job_chunk_frames": 50, "job_lease_s": 1.0, **kw})
+
+
+@pytest.fixture
+def jobs_client(tmp_path, runtime):
+    with TestClient(create_app(make_settings(tmp_path), runtime), raise_server_exceptions=False) as c:
+        yield c
+
+
+def wait_for(client, url, states=("succeeded", "failed", "cancelled"), timeout_s=60):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        job = client.get(url).json()
+        if job["state"] in states:
+            return job
+        time.sleep(0.05)
+    raise AssertionError(f"job still {job['state']} after {timeout_s} s")
+
+
+def test_job_lifecycle(jobs_client):
+    c = jobs_client
+    r = c.post("/v1/jobs", json=job_body(120))
+    assert r.status_code == 202, r.text
+    url = r.headers["location"]
+    assert url == f"/v1/jobs/{r.json()['id']}" and r.json()["state"] in ("queued", "running")
+    job = wait_for(c, url)
+    assert job["state"] == "succeeded", job
+    assert job["progress"] == {"frames_done": 120, "frames_total": 120, "fraction": 1.0}
+    assert job["result_url"] == url + "/result" and job["expires_at"] > job["finished_at"]
+    res = c.get(job["result_url"])
+    assert res.status_code == 200 and res.headers["content-type"] == "application/x-npz"
+    v = np.load(io.BytesIO(res.content), allow_pickle=False)["garment_0_vertices"]
+    assert v.shape == (120, 5148, 3)
+    assert c.delete(url).status_code == 204
+    assert c.get(url).status_code == 404 and c.get(url + "/result").status_code == 404
+
+
+def test_jobs_take_longer_motions_than_drape(jobs_client):
+    body = job_body(400, clip="01_01")
+    assert jobs_client.post("/v1/drape", json=body).status_code == 422  # over max_frames (300)
+    r = jobs_client.post("/v1/jobs", json=body)
+    assert r.status_code == 202
+    job = wait_for(jobs_client, r.headers["location"])
+    assert job["state"] == "succeeded" and job["progress"]["frames_done"] == 400
+
+
+def test_bad_jobs_are_refused_or_fail_with_a_problem(jobs_client, tmp_path):
+    c = jobs_client
+    r = c.post("/v1/jobs", json={**job_body(), "garments": [{"id": "nope"}]})
+    assert r.status_code == 422 and r.headers["content-type"].startswith("application/problem+json")
+    assert c.post("/v1/jobs", json={**job_body(), "extra": 1}).status_code == 422
+    bvh = {"motion": {"type": "bvh", "bvh": "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0"}, "garments": [{"id": "tshirt"}]}
+    job = wait_for(c, c.post("/v1/jobs", json=bvh).headers["location"])
+    assert job["state"] == "failed" and job["error"]["status"] == 422 and job["error"]["errors"][0]["pointer"].startswith("/body/motion")
+    assert c.get(f"/v1/jobs/{job['id']}/result").status_code == 409
+    assert c.get("/v1/jobs/" + "0" * 32).status_code == 404
+    assert c.get("/v1/jobs/not-an-id").status_code == 422
+
+
+def test_cancel_queued_and_running_jobs(jobs_client):
+    c = jobs_client
+    first = c.post("/v1/jobs", json=job_body(300, guard=True)).headers["location"]  # slow: guard on
+    second = c.post("/v1/jobs", json=job_body(60)).headers["location"]
+    wait_for(c, first, states=("running",))
+    assert c.delete(second).status_code == 204  # queued -> cancelled, never runs
+    assert c.delete(first).status_code == 204  # running -> stops at its next chunk
+    a, b = wait_for(c, first), wait_for(c, second)
+    assert a["state"] == b["state"] == "cancelled"
+    assert a["progress"]["frames_done"] < 300 and b["progress"]["frames_done"] == 0
+    assert c.get(first + "/result").status_code == 409
+
+
+def test_results_expire(tmp_path, runtime):
+    settings = make_settings(tmp_path, job_result_ttl_s=0.3)
+    with TestClient(create_app(settings, runtime)) as c:
+        url = c.post("/v1/jobs", json=job_body(10)).headers["location"]
+        job = wait_for(c, url)
+        path = settings.jobs_dir / "results" / f"{job['id']}.npz"
+        assert path.is_file()
+        time.sleep(0.4)
+        assert c.app.state.job_store.expire() == 1
+        assert c.get(url).status_code == 404 and not path.exists()
+
+
+def test_orphaned_jobs_are_requeued_at_start(tmp_path, runtime):
+    """A job left 'running' by a process that died (and one never started) both finish after a restart."""
+    settings = make_settings(tmp_path)
+    store = SqliteJobStore(settings)
+    running = store.create(DrapeRequest.model_validate(job_body(30)))
+    queued = store.create(DrapeRequest.model_validate(job_body(20)))
+    assert store.claim()[0] == running.id
+    store._exec("UPDATE jobs SET owner = ?, lease_until = ? WHERE id = ?", (f"{store.host}:999999999", time.time() + 3600, running.id))
+    store.close()
+    with TestClient(create_app(settings, runtime)) as c:
+        for job in (running, queued):
+            done = wait_for(c, f"/v1/jobs/{job.id}")
+            assert done["state"] == "succeeded", done
+        assert c.get(f"/v1/jobs/{running.id}").json()["progress"]["frames_done"] == 30
+
+
+def test_a_job_that_keeps_losing_its_owner_fails_after_max_attempts(tmp_path):
+    settings = make_settings(tmp_path, job_max_attempts=2, job_lease_s=0.01)
+    store = SqliteJobStore(settings)
+    job = store.create(DrapeRequest.model_validate(job_body(10)))
+    for _ in range(2):
+        assert store.claim()[0] == job.id
+        time.sleep(0.02)
+        store.recover()
+    record = store.get(job.id)
+    assert record.state == "failed" and record.error["status"] == 500
+    assert store.counts()["failed"] == 1
