@@ -41,7 +41,7 @@ STATUS = {
 
 
 def perform_job(request_json: str, result_path: str) -> dict:
-    """The RQ job function (runs in the work-horse): {'outcome': ...} or {'problem': ...}."""
+    """The RQ job function (runs in the work-horse): the result's size, headers and frames."""
     from service.runtime import Runtime
     from service.worker import execute_job
 
@@ -59,12 +59,19 @@ def perform_job(request_json: str, result_path: str) -> dict:
     request = DrapeRequest.model_validate_json(request_json)
     try:
         outcome = execute_job(_RUNTIME, request, Path(result_path), progress)
-    except Exception as exc:  # noqa: BLE001 - an input problem is the job's answer, not a retry
+    except Exception as exc:
         problem = problem_from_exception(exc)
-        if problem.status >= 500:
-            raise
-        return {"problem": _problem_json(problem)}
+        if problem.status < 500 and job is not None:  # an input problem fails the job for good: no retry
+            job.meta["problem"] = _problem_json(problem)
+            job.retries_left = 0
+            job.save()
+            raise JobInputError(problem.detail) from None
+        raise
     return {"result_bytes": outcome.result_bytes, "headers": outcome.headers, "frames": outcome.frames}
+
+
+class JobInputError(ValueError):
+    """The job's request is invalid (its problem document is in job.meta['problem'])."""
 
 
 class RedisJobStore:
@@ -113,13 +120,10 @@ class RedisJobStore:
         error, result_bytes, headers, done = None, None, {}, meta.get("frames_done", 0)
         if state == "succeeded":
             value = job.return_value() or {}
-            if "problem" in value:
-                state, error = "failed", value["problem"]
-            else:
-                result_bytes, headers = value.get("result_bytes"), value.get("headers", {})
-                done = value.get("frames", done)
+            result_bytes, headers = value.get("result_bytes"), value.get("headers", {})
+            done = value.get("frames", done)
         elif state == "failed":
-            error = _problem_json(ProblemDetail(500, "Job failed", "the server failed to process the job"))
+            error = meta.get("problem") or _problem_json(ProblemDetail(500, "Job failed", "the server failed to process the job"))
         created = meta.get("created_at") or time.time()
         ended = job.ended_at.timestamp() if job.ended_at else None
         return JobRecord(
