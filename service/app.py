@@ -50,8 +50,9 @@ Limits per request (defaults; deployments may change them, see the service setti
 | total vertices (frames x (garment vertices + body vertices if included)) | {s.max_total_vertices} | {s.job_max_total_vertices} |
 | time | {s.request_timeout_s:g} s (504 after) | {s.job_timeout_s:g} s |
 
-Load: synchronous drapes wait in a bounded queue ({s.max_queue} requests); when it is full the
-answer is 503 with `Retry-After`. Job results are kept {s.job_result_ttl_s:g} s.
+Load: synchronous drapes wait in a bounded queue ({s.max_queue} requests); when it is full, or the
+expected wait exceeds {s.max_queue_wait_s:g} s, the answer is 503 with `Retry-After`. Job results are kept
+{s.job_result_ttl_s:g} s.
 
 Auth (when the deployment configures API keys): send the key in the `{s.api_key_header}` header;
 a missing key is 401, a wrong one 403. `/healthz`, `/readyz` and `/metrics` are open.

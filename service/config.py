@@ -39,6 +39,7 @@ class Settings(BaseSettings):
     max_batch: int = Field(8, ge=1, le=256, description="requests merged into one batch (1: batching off)")
     max_wait_ms: float = Field(5.0, ge=0, le=1000, description="how long a batch waits for more requests once a worker is free")
     max_queue: int = Field(32, ge=0, description="requests queued for a worker before 503 + Retry-After")
+    max_queue_wait_s: float = Field(10.0, gt=0, description="503 at once when the expected wait in the queue exceeds this")
     worker_start_timeout_s: float = Field(120.0, gt=0)
     worker_hang_s: float = Field(600.0, gt=0, description="a worker busy with one batch for longer is killed and replaced")
     shutdown_drain_s: float = Field(30.0, ge=0, description="on shutdown, how long queued and running work may finish")

@@ -184,6 +184,8 @@ class WorkerPool:
         self._busy_drapes = 0
         self._accepting = False
         self._batch_s = 1.0  # moving average of a batch's time, for Retry-After
+        self._item_s = 0.0  # moving average of a drape's share of its batch's time, for admission
+        self._busy_items = 0
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------------ lifecycle
@@ -235,6 +237,12 @@ class WorkerPool:
         return len(self._pending)
 
     # ------------------------------------------------------------------ submit
+    def expected_wait_s(self) -> float:
+        """Queueing time of a new request: the queued and running requests ahead of it, at the
+        measured seconds per request (a moving average; batching lowers it), over the workers."""
+        ahead = len(self._pending) + self._busy_items - (len(self.workers) - self._busy)
+        return max(ahead, 0) * self._item_s / max(len(self.workers), 1)
+
     def _retry_after_s(self) -> int:
         waves = (len(self._pending) + self._busy) / max(len(self.workers) * self.settings.max_batch, 1)
         return max(1, math.ceil(waves * self._batch_s))
@@ -247,6 +255,11 @@ class WorkerPool:
         if len(self._pending) - (len(self.workers) - self._busy) >= self.settings.max_queue:  # waiting beyond the free workers
             self.metrics.rejected.labels("queue_full").inc()
             raise ProblemException(503, "Busy", f"the queue is full ({self.settings.max_queue} requests); retry later",
+                                   headers={"Retry-After": str(self._retry_after_s())})
+        expected_wait_s = self.expected_wait_s()
+        if expected_wait_s > self.settings.max_queue_wait_s:
+            self.metrics.rejected.labels("queue_wait").inc()
+            raise ProblemException(503, "Busy", f"the expected wait ({expected_wait_s:.1f} s) exceeds {self.settings.max_queue_wait_s:g} s; retry later",
                                    headers={"Retry-After": str(self._retry_after_s())})
         loop = asyncio.get_running_loop()
         timeout_s = timeout_s or self.settings.request_timeout_s
@@ -334,11 +347,17 @@ class WorkerPool:
         try:
             if batch[0].kind == "drape":
                 self.metrics.batch_size.observe(len(batch))
+                self._busy_items += len(batch)
                 message = ("drape", [it.payload[0] for it in batch])
-                outcomes = await asyncio.to_thread(worker.call, message)
+                try:
+                    outcomes = await asyncio.to_thread(worker.call, message)
+                finally:
+                    self._busy_items -= len(batch)
                 for item, outcome in zip(batch, outcomes):
                     self._observe(outcome)
                     _settle(item, outcome)
+                item_s = (time.perf_counter() - t0) / len(batch)
+                self._item_s = item_s if self._item_s == 0 else 0.8 * self._item_s + 0.2 * item_s
             else:
                 item = batch[0]
                 outcome = await asyncio.to_thread(worker.call, ("job",) + item.payload, item.on_progress)

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -33,6 +35,7 @@ log = logging.getLogger(__name__)
 
 # metres per BVH unit for the request's `units` (None: infer from the skeleton's size)
 BVH_UNITS = {"auto": None, "metres": 1.0, "centimetres": 0.01, "inches": 0.0254, "cmu": 0.0254 / 0.45}
+CLIP_CACHE_ENTRIES = 64  # adapted clips kept per worker (a 10 s clip is ~0.1 MB)
 MODEL_VERSIONS = {"body": "anny-0.6.2-cmu_mb", "fit": "mhclo-retarget", "dynamics": "none", "guard": "plane-push-v1"}
 
 
@@ -81,6 +84,8 @@ class Runtime:
         self.catalog = catalog
         self.clips = clips
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
+        self._clip_cache: OrderedDict = OrderedDict()
+        self._clip_lock = threading.Lock()
 
     @classmethod
     def load(cls, settings: Settings) -> "Runtime":
@@ -91,6 +96,22 @@ class Runtime:
         runtime = cls(settings, body, catalog, clips)
         log.info("loaded assets in %.2f s", time.perf_counter() - t0)
         return runtime
+
+    def _adapted_clip(self, clip_id: str, key: tuple, clip, shape: BodyShape) -> tuple[np.ndarray, np.ndarray]:
+        """The whole clip adapted to this body (``adapt_clip``, ~0.1-0.4 s), memoised per
+        (clip, phenotypes): a shopper's body tries many garments on the same clips."""
+        cache = self._clip_cache
+        with self._clip_lock:
+            hit = cache.get((clip_id, key))
+            if hit is not None:
+                cache.move_to_end((clip_id, key))
+                return hit
+        hit = adapt_clip(clip, self.body, shape)
+        with self._clip_lock:
+            cache[(clip_id, key)] = hit
+            while len(cache) > CLIP_CACHE_ENTRIES:
+                cache.popitem(last=False)
+        return hit
 
     # ------------------------------------------------------------------ request -> pipeline
     def _phenotypes(self, request: DrapeRequest) -> np.ndarray:
@@ -109,7 +130,7 @@ class Runtime:
             stop = clip.num_frames
             if m.duration_s is not None:
                 stop = min(stop, start + int(round(m.duration_s * clip.fps)) + 1)
-            rotations, translation = adapt_clip(clip, self.body, shape)
+            rotations, translation = self._adapted_clip(m.clip, tuple(shape.phenotypes[0].tolist()), clip, shape)
             rotations, translation = rotations[0, start:stop], translation[0, start:stop]
             rotations, translation = resample_motion(rotations, translation, clip.fps, fps)
             if m.duration_s is None:  # to the end of the clip, within the limit

@@ -182,3 +182,19 @@ def test_process_pool_runs_and_reports_health():
     assert health[0]["alive"] and health[0]["pid"]
     assert all(int(o.headers["X-Frames"]) == 4 for o in outs)
     assert not pool.ready
+
+
+def test_expected_wait_over_the_limit_answers_503_at_once():
+    rt = FakeRuntime(0.2)
+
+    async def main():
+        pool = _pool(rt, max_batch=1, max_queue=100, max_queue_wait_s=0.5)
+        await pool.start()
+        await pool.drape(_request())  # measures ~0.2 s per request
+        results = await asyncio.gather(*(pool.drape(_request()) for _ in range(8)), return_exceptions=True)
+        await pool.close()
+        return results
+
+    results = asyncio.run(main())
+    refused = [r for r in results if isinstance(r, ProblemException)]
+    assert 3 <= len(refused) <= 6 and all(r.status == 503 and "expected wait" in r.detail for r in refused)
