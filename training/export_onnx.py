@@ -8,7 +8,7 @@ Writes ``assets/models/<garment>/``:
                    ONNX GRU op); pass hT as the next chunk's h0 to process a long sequence in chunks
 - ``model.json``   files, sha256, sizes, input/output names and shapes, parity, training config,
                    wall time and metrics (the same are in each ONNX file's metadata_props:
-                   config, git_commit, train_wall_s, metrics, record)
+                   config, git_commit, train_wall_s, steps, metrics, exported_at)
 
 Parity: torch vs onnxruntime on random inputs (several batch sizes and lengths), max abs
 difference <= PARITY_TOLERANCE_M.

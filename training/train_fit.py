@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from inference.body import BodyModel
 from inference.garment import GarmentCatalog
@@ -54,20 +55,32 @@ class FitConfig:
     lr: float = 1e-3  # Adam, first phase
     lr_final: float = 1e-4  # Adam after ``lr_drop`` of the budget (SNUG §5.3.1: 1e-3 then 1e-4)
     lr_drop: float = 0.7  # fraction of the budget (time or steps) after which lr = lr_final
+    fresh_candidates: bool = True  # re-select the collision candidates at the current prediction every step
+    init: str | None = None  # warm start: a fit.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
     threads: int = 1  # torch intra-op threads (the CPU is shared)
     log_every: int = 50
 
 
+def fresh_candidates(trees: list[cKDTree], shape_idx: np.ndarray, x: torch.Tensor, k: int) -> torch.Tensor:
+    """Collision candidates at the current garment positions x (B, V, 3): the k nearest kept
+    body vertices of each bank shape's KD-tree ``trees[shape_idx[b]]``, (B, V, k) int64."""
+    pts = x.detach().numpy()
+    return torch.as_tensor(np.stack([trees[i].query(pts[b], k=k)[1].reshape(len(pts[b]), k) for b, i in enumerate(shape_idx)]), dtype=torch.int64)
+
+
 def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBank) -> dict:
     """Mean static energy terms (J) over ``bank`` of retarget + R_G (model None: the retarget
     alone), mean / max vertex distance to the retarget (cm), and the fraction of garment
-    vertices closer to the body than the collision margin (d < eps) and inside it (d < 0)."""
+    vertices closer to the body than the collision margin (d < eps) and inside it (d < 0) by
+    the tangent-plane distance of eq. 5.12 (candidates selected at the evaluated positions)."""
     with torch.no_grad():
         x0 = torch.as_tensor(bank.retarget)
         x = x0 + model(torch.as_tensor(bank.phenotypes)) if model is not None else x0
-        terms = energy_terms(cloth, x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), torch.as_tensor(bank.candidates.astype(np.int64)))
-        d = body_signed_distances(x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), torch.as_tensor(bank.candidates.astype(np.int64)))
+        trees = [cKDTree(p) for p in bank.body_points]
+        cand = fresh_candidates(trees, np.arange(len(bank)), x, bank.candidates.shape[-1])
+        terms = energy_terms(cloth, x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), cand)
+        d = body_signed_distances(x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), cand)
         dist = (x - x0).norm(dim=-1)
     out = {f"{k}_j": float(v.mean()) for k, v in terms.items()}
     out["static_j"] = float(sum(v for v in terms.values()).mean())
@@ -95,6 +108,12 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     log.info("%s: %d vertices, bank of %d shapes (%d body vertices kept) in %.1f s", config.garment, asset.num_vertices, len(bank), len(bank.body_index), bank_s)
 
     model = FitRegressor(basis, config.hidden, config.layers)
+    init_wall_s, init_steps = 0.0, 0
+    if config.init:
+        init_model, init_record = load_fit(Path(config.init))
+        model.load_state_dict(init_model.state_dict())
+        init_wall_s, init_steps = init_record["train_wall_s"], init_record["steps"]
+    trees = [cKDTree(p) for p in bank.body_points] if config.fresh_candidates else None
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     P = torch.as_tensor(bank.phenotypes)
     X0 = torch.as_tensor(bank.retarget)
@@ -108,9 +127,11 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         progress = max((time.perf_counter() - t0) / budget_s, step / config.max_steps)
         for g in opt.param_groups:  # SNUG §5.3.1: lr 1e-3, then 1e-4
             g["lr"] = config.lr if progress < config.lr_drop else config.lr_final
-        idx = torch.as_tensor(rng.integers(0, len(bank), config.batch_size))
+        idx_np = rng.integers(0, len(bank), config.batch_size)
+        idx = torch.as_tensor(idx_np)
         x = X0[idx] + model(P[idx])  # eq. 4.2 without R_L: retarget fit + R_G
-        terms = energy_terms(cloth, x, BP[idx], BN[idx], C[idx])
+        cand = fresh_candidates(trees, idx_np, x, config.candidates) if trees is not None else C[idx]
+        terms = energy_terms(cloth, x, BP[idx], BN[idx], cand)
         loss = sum(terms.values()).mean()  # L_static, eq. 5.7
         opt.zero_grad()
         loss.backward()
@@ -129,8 +150,9 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         "model": "fit",
         "config": asdict(config),
         "smoke": smoke,
-        "steps": step,
-        "train_wall_s": wall_s,
+        "steps": step + init_steps,
+        "train_wall_s": wall_s + init_wall_s,
+        "this_run": {"steps": step, "wall_s": wall_s, "init": config.init, "init_steps": init_steps, "init_wall_s": init_wall_s},
         "bank_build_s": bank_s,
         "metrics": metrics,
         "history": history,
@@ -161,11 +183,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--minutes", type=float, default=FitConfig.minutes)
     p.add_argument("--max-steps", type=int, default=FitConfig.max_steps)
     p.add_argument("--threads", type=int, default=FitConfig.threads)
+    p.add_argument("--init", default=None, help="continue from this fit.pt (warm start)")
     p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank (CI)")
     p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads)
+    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads, init=args.init)
     if args.smoke:
         kw.update(SMOKE)
     record = train_fit(FitConfig(**kw), smoke=args.smoke, out_dir=args.out)

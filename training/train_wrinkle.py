@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel
 from inference.garment import GarmentCatalog
@@ -75,6 +76,8 @@ class WrinkleConfig:
     validation_shapes: int = 4  # neutral + held-out uniform shapes
     validation_frames: int = 120  # first frames of the validation clip
     max_clip_frames: int | None = None  # truncate clips (smoke runs)
+    fresh_candidates: bool = True  # re-select collision candidates in every posed frame (KD-tree of the posed body)
+    init: str | None = None  # warm start: a wrinkle.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
     threads: int = 1
     log_every: int = 25
@@ -143,6 +146,13 @@ def garment_frames(model: WrinkleGRU | None, batch: WindowBatch, weights: torch.
     return x.reshape(B, T, -1, 3)
 
 
+def posed_candidates(body_points: torch.Tensor, x: torch.Tensor, k: int) -> torch.Tensor:
+    """Collision candidates in the posed frames: the k nearest posed (kept) body vertices of each
+    garment vertex, from a KD-tree per frame. body_points (N, M, 3), x (N, V, 3); returns (N, V, k)."""
+    bp, xp = body_points.detach().numpy(), x.detach().numpy()
+    return torch.as_tensor(np.stack([cKDTree(bp[n]).query(xp[n], k=k)[1].reshape(len(xp[n]), k) for n in range(len(bp))]), dtype=torch.int64)
+
+
 def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """SNUG loss (eq. 5.5) of windows x (B, T, V, 3): L_static summed over the T frames (eq. 5.7)
     + L_inertia of every frame t >= 2 from its two predecessors (eq. 5.6); mean over the batch.
@@ -154,9 +164,10 @@ def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: f
     return sum(terms.values()).mean(), terms
 
 
-def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, weights: torch.Tensor, frames: int) -> dict:
+def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, weights: torch.Tensor, frames: int, fresh: bool = True) -> dict:
     """Whole-sequence run (h0 = 0) of the validation clip on every bank shape: mean energy terms
-    per frame (J) of the learned garment and of the fit-only baseline (R_L = 0)."""
+    per frame (J) of the learned garment and of the fit-only baseline (R_L = 0); collision
+    candidates re-selected in every posed frame when ``fresh``."""
     T = min(frames, int(motions.clip_start[1]))
     out: dict[str, dict[str, float]] = {}
     with torch.no_grad():
@@ -165,6 +176,8 @@ def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: Sha
             batch = make_batch(body, bank, fitted, motions, np.array([s]), np.arange(T)[None])
             for name, m in (("learned", model), ("fit_only", None)):
                 x = garment_frames(m, batch, weights, model.initial_state(1) if m is not None else None)
+                if fresh:
+                    batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), batch.candidates.shape[-1])
                 _, terms = snug_loss(cloth, x, batch, 1.0 / motions.fps)
                 for k, v in terms.items():
                     per_frame = float(v.sum()) / (T if k != "inertia" else max(T - 2, 1))
@@ -211,6 +224,12 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
 
     gamma_mean, gamma_std = motions.gamma_statistics()
     model = WrinkleGRU(basis, gamma_mean, gamma_std, config.hidden, config.layers)
+    init_wall_s, init_steps = 0.0, 0
+    if config.init:  # warm start; keeps the checkpoint's gamma statistics
+        model, init_record = load_wrinkle(Path(config.init))
+        model.train()
+        gamma_mean, gamma_std = model.gamma_mean.numpy(), model.gamma_std.numpy()
+        init_wall_s, init_steps = init_record["train_wall_s"], init_record["steps"]
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     weights = torch.as_tensor(asset.skin_weights.astype(np.float32))
     dt_s = 1.0 / motions.fps
@@ -227,6 +246,8 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         batch = make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, WINDOW_FRAMES))
         h0 = model.initial_state(config.batch_size, config.h0_std, gen)  # h0 ~ N(0, 0.1)
         x = garment_frames(model, batch, weights, h0)
+        if config.fresh_candidates:
+            batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
         loss, terms = snug_loss(cloth, x, batch, dt_s)
         opt.zero_grad()
         loss.backward()
@@ -240,7 +261,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
 
     model.eval()
     t_val = time.perf_counter()
-    metrics = {"validation": validate(model, cloth, body, val_bank, val_fitted, val_motions, weights, config.validation_frames)}
+    metrics = {"validation": validate(model, cloth, body, val_bank, val_fitted, val_motions, weights, config.validation_frames, config.fresh_candidates)}
     metrics["validation"]["clip"] = config.validation_clip
     log.info("validation %s (%.0f s): learned static %.5f J/frame, inertia %.6f; fit-only static %.5f, inertia %.6f",
              config.validation_clip, time.perf_counter() - t_val,
@@ -250,8 +271,9 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         "model": "wrinkle",
         "config": asdict(config),
         "smoke": smoke,
-        "steps": step,
-        "train_wall_s": wall_s,
+        "steps": step + init_steps,
+        "train_wall_s": wall_s + init_wall_s,
+        "this_run": {"steps": step, "wall_s": wall_s, "init": config.init, "init_steps": init_steps, "init_wall_s": init_wall_s},
         "bank_build_s": bank_s,
         "training_frames": int(len(motions.gamma)),
         "training_windows": int(len(motions.windows)),
@@ -288,11 +310,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--minutes", type=float, default=WrinkleConfig.minutes)
     p.add_argument("--max-steps", type=int, default=WrinkleConfig.max_steps)
     p.add_argument("--threads", type=int, default=WrinkleConfig.threads)
+    p.add_argument("--init", default=None, help="continue from this wrinkle.pt (warm start)")
     p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank and a short clip (CI); needs fit_smoke.pt")
     p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads)
+    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads, init=args.init)
     if args.smoke:
         kw.update(SMOKE)
     record = train_wrinkle(WrinkleConfig(**kw), smoke=args.smoke, out_dir=args.out)
