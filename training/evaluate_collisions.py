@@ -47,7 +47,8 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
              bodies: dict[str, np.ndarray] = BODIES) -> list[Row]:
     """Collision rates before/after the guard for every (body, garment) on ``clip_id``.
 
-    every : evaluate every n-th frame of the 30 fps clip (the drape itself runs on all frames)
+    every : evaluate every n-th frame of the 30 fps clip (fit baselines without dynamics: frames
+            are independent, so only those frames are draped)
     """
     body = BodyModel.load()
     catalog = GarmentCatalog.load()
@@ -57,16 +58,17 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
     for body_name, phenotypes in bodies.items():
         shape = body.shape(phenotypes[None])
         rotations, translation = adapt_clip(clip, body, shape)
-        motion = PoseSequence(rotations[0], translation[0], clip.fps)
+        # no dynamics: each frame is independent, so drape only the evaluated frames
+        motion = PoseSequence(rotations[0, ::every], translation[0, ::every], clip.fps / every)
         for gid in garments or catalog.ids():
             g = catalog.get(gid)
             t0 = time.perf_counter()
             raw = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=False), neutral=neutral)
             guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=True), neutral=neutral)
             _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
-            body_verts = body.skin(shape.rest_vertices, transforms[:, ::every])
-            before = collision_rates(raw.garments[0].vertices[None, ::every], body_verts, body.faces)
-            after = collision_rates(guarded.garments[0].vertices[None, ::every], body_verts, body.faces)
+            body_verts = body.skin(shape.rest_vertices, transforms)
+            before = collision_rates(raw.garments[0].vertices[None], body_verts, body.faces)
+            after = collision_rates(guarded.garments[0].vertices[None], body_verts, body.faces)
             rows.append(Row(body_name, gid, body_verts.shape[1], before, after, time.perf_counter() - t0))
             log.info("%s %s: inside %.3f%% -> %.3f%% (clean %.3f%% -> %.3f%%)", body_name, gid, before["inside_pct"],
                      after["inside_pct"], before["inside_pct_clean"], after["inside_pct_clean"])
