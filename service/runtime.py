@@ -26,7 +26,7 @@ from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion
 from inference.motion.retarget import retarget
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape
-from service.batching import concatenate_results, merge_key, merge_motions, split_result
+from service.batching import PER_FRAME_DYNAMICS, concatenate_results, merge_key, merge_motions, split_result
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import BvhMotion, ClipMotion, DrapeRequest, PoseMotion
@@ -277,7 +277,9 @@ class Runtime:
         """A long request in chunks of ``job_chunk_frames`` frames; ``progress(done, total)`` is
         called after each chunk and returns True to cancel (then the result is None)."""
         p = self.prepare(request, RequestLimits.job(self.settings))
-        total, chunk = p.motion.num_frames, self.settings.job_chunk_frames
+        total = p.motion.num_frames
+        # chunks only where every stage is per frame: a stateful dynamics model runs in one call
+        chunk = self.settings.job_chunk_frames if request.options.dynamics in PER_FRAME_DYNAMICS else total
         if progress is not None and progress(0, total):
             return None
         parts = []
