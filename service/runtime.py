@@ -36,7 +36,12 @@ log = logging.getLogger(__name__)
 # metres per BVH unit for the request's `units` (None: infer from the skeleton's size)
 BVH_UNITS = {"auto": None, "metres": 1.0, "centimetres": 0.01, "inches": 0.0254, "cmu": 0.0254 / 0.45}
 CLIP_CACHE_ENTRIES = 64  # adapted clips kept per worker (a 10 s clip is ~0.1 MB)
-MODEL_VERSIONS = {"body": "anny-0.6.2-cmu_mb", "fit": "mhclo-retarget", "dynamics": "none", "guard": "plane-push-v1"}
+MODEL_VERSIONS = {
+    "body": "anny-0.6.2-cmu_mb",
+    "fit": "mhclo-retarget|learned-snug-v1",
+    "dynamics": "none|learned-gru-v1",
+    "guard": "plane-push-v2",
+}
 
 
 @dataclass(frozen=True)

@@ -147,3 +147,17 @@ def test_oversized_body_is_413(client, settings):
 
 def test_malformed_json_is_422(client):
     _problem(client.post("/v1/drape", content=b"{not json", headers={"content-type": "application/json"}), 422)
+
+
+def test_learned_models_are_selectable(client):
+    def verts(options):
+        r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz", "options": {"include_body": False, "guard": False, **options}})
+        assert r.status_code == 200, r.text
+        return np.load(io.BytesIO(r.content), allow_pickle=False)["garment_0_vertices"]
+
+    base = verts({})
+    learned = verts({"fit": "learned", "dynamics": "learned"})
+    assert base.shape == learned.shape and np.isfinite(learned).all()
+    assert np.abs(learned - base).max() > 1e-3  # the models change the garment
+    # the wrinkle GRU output varies over time beyond the skinning (frames differ in unposed space)
+    assert np.abs(np.diff(learned - base, axis=0)).max() > 1e-4
