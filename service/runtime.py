@@ -38,8 +38,10 @@ BVH_UNITS = {"auto": None, "metres": 1.0, "centimetres": 0.01, "inches": 0.0254,
 CLIP_CACHE_ENTRIES = 64  # adapted clips kept per worker (a 10 s clip is ~0.1 MB)
 MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
-    "fit": "mhclo-retarget|learned-snug-v1",
-    "dynamics": "none|learned-gru-v1",
+    "fit": "mhclo-retarget",
+    "dynamics": "none",
+    "learned_fit": "snug-fit-v1",  # options.fit = 'learned' (assets/models/<garment>/fit.onnx)
+    "learned_dynamics": "snug-gru-v1",  # options.dynamics = 'learned' (wrinkle.onnx)
     "guard": "plane-push-v2",
 }
 

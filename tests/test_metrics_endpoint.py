@@ -11,6 +11,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from service.app import create_app
 from service.config import Settings
 from service.logs import JsonFormatter, request_id_var
+from service.runtime import MODEL_VERSIONS
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +41,7 @@ def test_metrics_cover_requests_latency_queue_batches_inference_jobs(metrics_cli
     assert m[("tryon_http_request_duration_seconds_count", (("method", "POST"), ("route", "/v1/drape")))] >= 1
     assert ("tryon_queue_depth", ()) in m
     assert m[("tryon_batch_size_count", ())] >= 1
-    assert m[("tryon_inference_ms_count", (("model", "plane-push-v1"), ("stage", "guard")))] >= 1
+    assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["guard"]), ("stage", "guard")))] >= 1
     assert m[("tryon_inference_ms_count", (("model", "mhclo-retarget"), ("stage", "fit")))] >= 1
     assert {("tryon_jobs", (("state", s),)) for s in ("queued", "running", "succeeded", "failed", "cancelled")} <= set(m)
     assert m[("tryon_workers_alive", ())] == 1
