@@ -1,4 +1,4 @@
-"""Cloth energies (training.physics): hand-computed cases, rest, rigid invariance, batch, gradients."""
+"""Cloth energies (training.physics): hand-computed cases, rest, rigid invariance, batch, gradients, Hessians."""
 import math
 
 import numpy as np
@@ -10,9 +10,11 @@ from training.physics import (
     ClothGeometry,
     ClothMaterial,
     bending_energy,
+    bending_hessian,
     body_candidates,
     body_signed_distances,
     collision_energy,
+    collision_hessian,
     dihedral_angles,
     energy_terms,
     gravity_energy,
@@ -20,6 +22,7 @@ from training.physics import (
     interior_hinges,
     static_energy,
     strain_energy,
+    strain_hessian,
     total_energy,
 )
 
@@ -322,6 +325,7 @@ def test_gradients_match_finite_differences():
         "bending": lambda y: bending_energy(cloth, y),
         "gravity": lambda y: gravity_energy(cloth, y),
         "collision": lambda y: collision_energy(cloth, y, pts, nrm),
+        "collision_smoothed": lambda y: collision_energy(cloth, y, pts, nrm, smoothing_m=0.004),
         "inertia": lambda y: inertia_energy(cloth, y, xp, xpp, 1.0 / 30.0),
     }
     for name, fn in checks.items():
@@ -330,3 +334,59 @@ def test_gradients_match_finite_differences():
         scale = g.abs().max().item()
         assert scale > 0, name
         assert torch.autograd.gradcheck(lambda y: fn(y) / scale, (x,), eps=1e-7, atol=1e-6, rtol=1e-5), name
+
+
+def test_collision_active_mask_and_smoothing():
+    verts = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float64)
+    cloth = ClothGeometry.from_mesh(verts, [[0, 1, 2]], MAT)
+    pts, nrm = _plane_body()
+    x = _t((verts + [0.0, 0.0, -0.005])[None])  # all three 5 mm deep
+    full = collision_energy(cloth, x, _t(pts), _t(nrm)).item()
+    assert full == pytest.approx(3 * MAT.k_collision * 0.007**3, rel=1e-12)
+    active = torch.tensor([[True, False, True]])
+    assert collision_energy(cloth, x, _t(pts), _t(nrm), active=active).item() == pytest.approx(full * 2 / 3, rel=1e-12)
+    # blending coplanar tangent planes changes nothing; a tiny smoothing is the closest-vertex d
+    assert collision_energy(cloth, x, _t(pts), _t(nrm), smoothing_m=0.01).item() == pytest.approx(full, rel=1e-12)
+    rng = np.random.default_rng(7)
+    body = rng.normal(size=(1, 200, 3))
+    normals = body / np.linalg.norm(body, axis=-1, keepdims=True)
+    pts3 = _t(rng.normal(size=(1, 30, 3)))
+    sharp = body_signed_distances(pts3, _t(body), _t(normals))
+    soft = body_signed_distances(pts3, _t(body), _t(normals), smoothing_m=1e-3)
+    np.testing.assert_allclose(soft.numpy(), sharp.numpy(), atol=1e-9)
+
+
+def _dense(blocks, elements, V):
+    H = torch.zeros(3 * V, 3 * V, dtype=F64)
+    dofs = (3 * elements[:, :, None] + torch.arange(3)).reshape(len(elements), -1)
+    for e in range(len(elements)):
+        H[dofs[e][:, None], dofs[e][None, :]] += blocks[e]
+    return H
+
+
+def test_hessians_match_autograd_where_exact_and_are_psd():
+    from torch.autograd.functional import hessian
+
+    verts, faces = _grid(n=4, size=0.05, curved=True)
+    cloth = ClothGeometry.from_mesh(verts, faces, MAT)
+    V = len(verts)
+
+    def exact(fn, x):
+        return hessian(lambda y: fn(y.reshape(1, V, 3)).sum(), x.reshape(-1))
+
+    rng = np.random.default_rng(8)
+    x = _t((verts + 0.003 * rng.normal(size=verts.shape))[None])  # mixed tension / compression
+    H = exact(lambda y: strain_energy(cloth, y), x)
+    torch.testing.assert_close(_dense(strain_hessian(cloth, x, project=False)[0], cloth.faces, V), H, rtol=1e-9, atol=1e-9 * H.abs().max().item())
+    assert torch.linalg.eigvalsh(H).min() < 0  # compression: indefinite
+    Hp = _dense(strain_hessian(cloth, x)[0], cloth.faces, V)
+    assert torch.linalg.eigvalsh(Hp).min() > -1e-9 * Hp.abs().max()  # the projection is PSD
+    stretched = _t((verts * [1.05, 1.02, 1.0])[None])  # pure tension: the projection is exact
+    torch.testing.assert_close(_dense(strain_hessian(cloth, stretched)[0], cloth.faces, V), exact(lambda y: strain_energy(cloth, y), stretched))
+    rest = _t(verts[None])  # bending Gauss-Newton is exact at the rest angle
+    torch.testing.assert_close(_dense(bending_hessian(cloth, rest)[0], cloth.hinges, V), exact(lambda y: bending_energy(cloth, y), rest))
+    pts, nrm = _plane_body(n=7, spacing=0.01)
+    pts, nrm = _t(pts + [0.025, 0.025, 0.001]), _t(nrm)
+    Hc = torch.block_diag(*collision_hessian(cloth, x, pts, nrm)[0])
+    torch.testing.assert_close(Hc, exact(lambda y: collision_energy(cloth, y, pts, nrm), x))
+    assert Hc.abs().max() > 0

@@ -20,7 +20,13 @@ Discretisation (``ClothGeometry``, precomputed once per garment from its rest ge
 - masses: lumped, density x thickness x area / 3 to each corner of every triangle.
 - collision: d(x) is SNUG's approximation of the signed distance to the posed body, the
   distance to the tangent plane of the closest body vertex, (x - b_c) . n_c, with c the closest
-  body vertex among KD-tree candidates (or all body vertices for small meshes).
+  body vertex among KD-tree candidates (or all body vertices for small meshes). Options for
+  solvers: a soft-min blend of the candidates' planes (``smoothing_m``: smooth in x, where the
+  closest-vertex d jumps between neighbouring planes) and a per-vertex ``active`` mask.
+
+Hessians (``*_hessian``): per-element positive semi-definite approximations for Newton solvers
+(StVK Gauss-Newton + clamped geometric stiffness or the exact one, bending Gauss-Newton,
+exact collision blocks); the mass term of eq. 5.6 is M / dt^2.
 
 Units: SI throughout (metres, kg, seconds, Pa, J, radians); gravity is -Z, 9.81 m/s^2.
 Arrays: positions (B, V, 3), batch axis first; every energy returns (B,) joules. The dtype of
@@ -307,25 +313,49 @@ def closest_body_vertices(x: torch.Tensor, body_points: torch.Tensor, candidates
         return torch.gather(cand, 2, d2.argmin(dim=-1, keepdim=True))[..., 0]
 
 
-def body_signed_distances(x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None) -> torch.Tensor:
+def body_signed_distances(x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None, smoothing_m: float | None = None) -> torch.Tensor:
     """SNUG's approximate signed distance to the posed body (eq. 5.12's d(x)), metres.
 
     d(x_v) = (x_v - b_c) . n_c with c the closest body vertex to x_v (``closest_body_vertices``:
     among its candidates, or among all body vertices when candidates is None). The choice of c
     is not differentiated; d is, with respect to x and the body. A (B, V, 1) candidate list fixes
-    c (a contact plane per vertex, as Newton solvers need).
+    c (a contact plane per vertex).
+
+    smoothing_m: instead of the closest candidate's plane, a soft-min blend of the candidates'
+    planes, d = sum_j w_j (x - b_j) . n_j with w = softmax(-|x - b_j|^2 / smoothing_m^2): smooth
+    in x (the closest-vertex d jumps where the closest vertex changes, as neighbouring tangent
+    planes differ), and the closest-vertex d as smoothing_m -> 0.
 
     x            : (B, V, 3) metres
     body_points  : (B, M, 3) metres, posed body vertices
     body_normals : (B, M, 3) unit outward vertex normals
-    candidates   : (B, V, k) or (V, k) int64, or None
+    candidates   : (B, V, k) or (V, k) int64, or None (all M body vertices: small meshes only)
     returns      : (B, V)
     """
     if body_points.shape != body_normals.shape:
         raise ValueError(f"body_points/body_normals: shapes differ, {tuple(body_points.shape)} vs {tuple(body_normals.shape)}")
+    if smoothing_m is not None:
+        return _blended_planes(x, body_points, body_normals, candidates, smoothing_m)[0]
     closest = closest_body_vertices(x, body_points, candidates)
     batch = torch.arange(x.shape[0])[:, None]
     return ((x - body_points[batch, closest]) * body_normals[batch, closest]).sum(-1)
+
+
+def _blended_planes(x, body_points, body_normals, candidates, smoothing_m):
+    """Soft-min blend of candidate tangent planes: d (B, V) and the blended normal (B, V, 3)."""
+    B, V = x.shape[:2]
+    if candidates is None:
+        cand = torch.arange(body_points.shape[1]).expand(B, V, -1)
+    else:
+        cand = candidates if candidates.ndim == 3 else candidates.expand(B, -1, -1)
+        if cand.shape[:2] != (B, V):
+            raise ValueError(f"candidates: expected shape (B, {V}, k) or ({V}, k), got {tuple(candidates.shape)}")
+    batch = torch.arange(B)[:, None, None]
+    p, n = body_points[batch, cand], body_normals[batch, cand]  # (B, V, k, 3)
+    r = x[:, :, None] - p
+    w = torch.softmax(-(r * r).sum(-1) / (smoothing_m * smoothing_m), dim=-1)  # (B, V, k)
+    d = (w * (r * n).sum(-1)).sum(-1)
+    return d, (w[..., None] * n).sum(-2)
 
 
 def body_candidates(x: np.ndarray, body_points: np.ndarray, k: int = 8) -> np.ndarray:
@@ -382,16 +412,20 @@ def gravity_energy(cloth: ClothGeometry, x: torch.Tensor) -> torch.Tensor:
     return -(cloth.vertex_mass_kg * (x @ g)).sum(-1)  # eq. 5.11
 
 
-def collision_energy(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None) -> torch.Tensor:
+def collision_energy(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None, active: torch.Tensor | None = None, smoothing_m: float | None = None) -> torch.Tensor:
     """Body collision penalty (eq. 5.12): sum_v k_collision max(eps - d(x_v), 0)^3, joules.
 
     d from ``body_signed_distances`` (arguments as there); eps, k_collision from the material.
+    active : optional (B, V) bool, vertices that collide (others are left out: e.g. garment
+             vertices in the posed body's self-intersections, where the skin is no surface)
     returns (B,)
     """
     _check_positions(cloth, x)
-    d = body_signed_distances(x, body_points, body_normals, candidates)
+    d = body_signed_distances(x, body_points, body_normals, candidates, smoothing_m)
     m = cloth.material
     depth = torch.clamp(m.collision_margin_m - d, min=0.0)
+    if active is not None:
+        depth = depth * active.to(depth.dtype)
     return m.k_collision * (depth * depth * depth).sum(-1)  # eq. 5.12
 
 
@@ -440,15 +474,16 @@ def energy_terms(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tenso
 # ------------------------------------------------------------------------------ Hessians
 # Positive semi-definite approximations of each energy's Hessian, per element, for Newton-type
 # solvers (``training.simulate``). Element blocks are ordered (corner a, coordinate i) -> 3 a + i.
-def strain_hessian(cloth: ClothGeometry, x: torch.Tensor) -> torch.Tensor:
-    """PSD Hessian of the StVK strain energy (eq. 5.8-5.9) per triangle, (B, F, 9, 9) J/m^2.
+def strain_hessian(cloth: ClothGeometry, x: torch.Tensor, project: bool = True) -> torch.Tensor:
+    """Hessian of the StVK strain energy (eq. 5.8-5.9) per triangle, (B, F, 9, 9) J/m^2.
 
     With c_a = dF/dx_a (F = Ds Dm^-1 is linear in x: dF/dx_a = e_c c_a^T), f_j the columns of F:
         dG00/dx_a = c_a0 f0,  dG11/dx_a = c_a1 f1,  dG01/dx_a = (c_a0 f1 + c_a1 f0) / 2
         H = V [lambda dtrG dtrG^T + 2 mu (dG00 dG00^T + dG11 dG11^T + 2 dG01 dG01^T)]    (Gauss-Newton)
           + V (C S+ C^T) (x) I_3                                                       (geometric)
     with S = lambda tr(G) I + 2 mu G the second Piola-Kirchhoff stress and S+ its PSD part
-    (eigenvalues clamped at 0). Exact when S is PSD (stretched, not compressed); PSD always.
+    (eigenvalues clamped at 0). project=True: PSD always, exact when S is PSD (stretched, not
+    compressed). project=False: S instead of S+, the exact Hessian (indefinite under compression).
     x : (B, V, 3) metres
     """
     _check_positions(cloth, x)
@@ -470,10 +505,11 @@ def strain_hessian(cloth: ClothGeometry, x: torch.Tensor) -> torch.Tensor:
     gn = m.lame_lambda_pa * outer(jtr, jtr) + 2.0 * m.lame_mu_pa * (outer(j00, j00) + outer(j11, j11) + 2.0 * outer(j01, j01))
     G = 0.5 * (torch.einsum("bfci,bfcj->bfij", Fg, Fg) - torch.eye(2, dtype=x.dtype))
     S = m.lame_lambda_pa * (G[..., 0, 0] + G[..., 1, 1])[..., None, None] * torch.eye(2, dtype=x.dtype) + 2.0 * m.lame_mu_pa * G
-    w, U = torch.linalg.eigh(S)
-    S_plus = (U * w.clamp(min=0.0)[..., None, :]) @ U.transpose(-1, -2)
+    if project:
+        w, U = torch.linalg.eigh(S)
+        S = (U * w.clamp(min=0.0)[..., None, :]) @ U.transpose(-1, -2)
     # K[b, f, a, a'] = sum_ij C[f, a, i] S+[b, f, i, j] C[f, a', j]   (geometric stiffness, per corner pair)
-    K = torch.einsum("fai,bfij,fcj->bfac", c, S_plus, c)
+    K = torch.einsum("fai,bfij,fcj->bfac", c, S, c)
     geo = torch.einsum("bfac,ij->bfaicj", K, torch.eye(3, dtype=x.dtype)).reshape(K.shape[:2] + (9, 9))
     return vol * (gn + geo)
 
@@ -493,14 +529,21 @@ def bending_hessian(cloth: ClothGeometry, x: torch.Tensor) -> torch.Tensor:
     return k * j[..., :, None] * j[..., None, :]
 
 
-def collision_hessian(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None) -> torch.Tensor:
-    """Hessian of the collision energy (eq. 5.12) per vertex for fixed closest body vertices,
-    (B, V, 3, 3) J/m^2: 6 k_collision max(eps - d, 0) n n^T (exact, PSD). Arguments as ``collision_energy``."""
+def collision_hessian(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None, active: torch.Tensor | None = None, smoothing_m: float | None = None) -> torch.Tensor:
+    """Hessian of the collision energy (eq. 5.12) per vertex, (B, V, 3, 3) J/m^2:
+    6 k_collision max(eps - d, 0) n n^T, PSD. Exact for a fixed closest body vertex; with
+    smoothing_m, n is the blended normal and the weights' derivatives are left out (Gauss-Newton).
+    Arguments as ``collision_energy``."""
     _check_positions(cloth, x)
-    closest = closest_body_vertices(x, body_points, candidates)
     with torch.no_grad():
-        batch = torch.arange(x.shape[0])[:, None]
-        n = body_normals[batch, closest]
-        d = ((x - body_points[batch, closest]) * n).sum(-1)
+        if smoothing_m is not None:
+            d, n = _blended_planes(x, body_points, body_normals, candidates, smoothing_m)
+        else:
+            closest = closest_body_vertices(x, body_points, candidates)
+            batch = torch.arange(x.shape[0])[:, None]
+            n = body_normals[batch, closest]
+            d = ((x - body_points[batch, closest]) * n).sum(-1)
         depth = torch.clamp(cloth.material.collision_margin_m - d, min=0.0)
+        if active is not None:
+            depth = depth * active.to(depth.dtype)
         return (6.0 * cloth.material.k_collision * depth)[..., None, None] * n[..., :, None] * n[..., None, :]
