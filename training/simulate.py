@@ -9,17 +9,25 @@ then v^{t+1} = (x^{t+1} - x^t) / dt. Every solve is logged (``SolveLog``: iterat
 before and after, gradient norm, largest per-vertex residual force, wall and CPU time) so the
 reference can be judged by how well it converged, not trusted blindly.
 
-Solver. Projected Newton by default: the PSD Hessian approximations of ``training.physics``
-(StVK Gauss-Newton + clamped geometric stiffness, bending Gauss-Newton, exact collision and
-mass blocks) assembled into a sparse matrix, solved by sparse LU (reused as the CG
-preconditioner of the following iterations), Armijo backtracking. L-BFGS (torch.optim.LBFGS,
-strong-Wolfe) is kept as ``method="lbfgs"``, but cloth is stiff: with the SNUG material,
-k dt^2 / m ~ E dt^2 / (rho A) ~ 1e3 on the catalog meshes, and L-BFGS did not reach the
-tolerance in 200 iterations even on a 49-vertex free-falling square, where Newton takes one
-iteration (measured). Contacts: d(x) of eq. 5.12 uses the tangent plane of the closest body
-vertex, which jumps when that vertex changes; each solver run holds the contacts of its start
-point and the run is repeated with re-selected contacts until they stop changing
-(``solve_step``), so every line search sees a smooth energy.
+Solver. Newton by default: the Hessians of ``training.physics`` (exact StVK while the system
+matrix is positive definite, else with the stress clamped to its PSD part; bending
+Gauss-Newton; collision and mass blocks) assembled into a sparse matrix, solved by sparse LU
+(reused as the CG preconditioner of the following iterations), Armijo backtracking; stops on
+the force tolerance, on a negligible energy decrease, or after ``max_iterations``. L-BFGS
+(torch.optim.LBFGS, strong-Wolfe) is kept as ``method="lbfgs"``, but cloth is stiff: with the
+SNUG material k dt^2 / m ~ E dt^2 / (rho A) ~ 1e3 on the catalog meshes, and L-BFGS did not
+reach the tolerance in 200 iterations even on a 49-vertex free-falling square, where Newton
+takes one iteration (measured).
+
+Contacts (``Collider``, ``RestPoseContacts``). d(x) of eq. 5.12 from SNUG's closest body
+vertex jumps when that vertex changes (neighbouring tangent planes differ), which stalls line
+searches; the solver blends the tangent planes of each vertex's candidates instead
+(``contact_smoothing_m``, 4 mm; the closest-vertex form is the limit and remains available,
+with contact rounds re-selecting the closest vertex between solver runs). On the anny body the
+candidates are chosen once in the rest pose among body vertices skinned like the garment
+vertex, and garment vertices near the posed body's LBS self-intersections do not collide
+(``exclusion_radius_m``): a sleeve squeezed between an arm sunk into the torso and the torso
+cannot be outside both, and its opposing contacts stalled the solver (measured).
 
 - ``settle``: static equilibrium against a fixed body. A garment held only by frictionless
   contact is not a well-posed static problem from an arbitrary start (it may slide, and the pure
@@ -32,12 +40,11 @@ point and the run is repeated with re-selected contacts until they stop changing
 - ``quasi_static_drape``: ``settle`` of the ``.mhclo`` retarget fit on the shaped body in the
   rest pose.
 - ``simulate``: dynamics against a moving collider given per frame (T, M, 3); the collider is
-  interpolated linearly for substeps, with vertex normals and a KD-tree rebuilt per substep;
-  warm start = previous positions moved by the garment's skinning displacement (when given) or
-  by the previous velocity.
-- ``simulate_sequence``: poses the anny body along a motion, skins the drape to frame 0 (with
-  the skinning velocity as initial velocity), settles frame 0 against the posed body, then
-  simulates frames 1..T-1.
+  interpolated linearly for substeps, with vertex normals rebuilt per substep; warm start =
+  previous positions moved by the garment's skinning displacement (when given) or by the
+  previous velocity.
+- ``simulate_sequence``: on the anny body along a motion: a lead-in from the rest pose (where
+  the drape is) to the clip's first pose, then the clip's frames.
 
 CLI: ``python -m training.simulate --garment tshirt --clip walk --frames 60
 --out build/reference/tshirt_walk.npz`` writes the sequence and the convergence log.
@@ -187,7 +194,8 @@ class SolveLog:
 class SimulationLog:
     """Convergence of a run: every solve, plus per output frame the energy terms (J) and time (s).
 
-    frame_energies: strain, bending, gravity, collision (posed body of the frame) and inertia
+    frame_energies: strain, bending, gravity, collision (posed body of the frame; SNUG's closest
+    body vertex among the ``candidates`` nearest, every vertex colliding) and inertia
     (eq. 5.6 over the output frames, dt = 1/fps; 0 for the first two frames), each (T,).
     """
 
