@@ -89,6 +89,9 @@ _FARTHER_M = 0.02
 MAJOR_COMPONENT_FRACTION = 0.1
 # Extra candidates are looked up this far along the rest normal (the other side of a crease).
 DEFAULT_AHEAD_M = 0.015
+# Skin-aware plans look for the nearest collider vertices of another bone among this many nearest
+# ones first (a KD-tree per bone only for the points where fewer than k_skin are there).
+_SKIN_SCAN = 32
 
 
 # ------------------------------------------------------------------------------ normals
@@ -239,14 +242,19 @@ def _push_planes(
     boundary: np.ndarray | None,
     reach_m: float,
     iterations: int,
-    extra: np.ndarray | None = None,
+    plan: GuardPlan | None = None,
 ) -> np.ndarray:
     """``push_outside`` on coordinate planes: P (3, BT, N); C, Nrm (3, BT*M) frame-major;
-    candidates, across (B|1, N, k); extra (BT, N, ke) per-frame candidates (never across).
-    Returns (3, BT, N) float32.
+    candidates, across (B|1, N, k); ``plan`` with dynamic points: their per-frame nearest
+    candidates are added (``_dynamic_candidates``; never across). Returns (3, BT, N) float32.
 
     Frames go through in blocks of about ``_BLOCK_ELEMENTS`` candidate entries (cache blocking:
     one (k, BT*N) block of 16 frames is ~2.5x slower per frame than blocks of 4, measured).
+    Screening: a push is at most margin - s* (the caps only shorten it), so a point with
+    s_j >= margin for every candidate j is never pushed; s_j = p . n_j - c_j . n_j over all
+    candidates is cheap (``_screen_planes``), and only the points it keeps (tolerance
+    ``_screen_tolerance`` for its rounding) go through ``_push_block``: the result is the same
+    as pushing every point.
     """
     if not margin_m >= 0:
         raise InputValueError("margin_m", f"expected >= 0, got {margin_m}")
@@ -254,22 +262,32 @@ def _push_planes(
     k = candidates.shape[2]
     cand = np.moveaxis(candidates, 2, 0).astype(np.intp)  # (k, B|1, N)
     batch_of_frame = np.arange(BT) // T if cand.shape[1] > 1 else np.zeros(BT, np.intp)
-    step = max(1, _BLOCK_ELEMENTS // max(N * k, 1))
+    offset = C[0] * Nrm[0] + C[1] * Nrm[1] + C[2] * Nrm[2]  # o_j = c_j . n_j, (BT*M,)
+    keep = margin_m + _screen_tolerance(P, C)
+    dynamic = plan is not None and plan.dynamic_points is not None
+    step = max(1, _BLOCK_ELEMENTS // max(N * (k + (DYNAMIC_K if dynamic else 0)), 1))
     out = np.empty((3, BT, N), np.float32)
     for f0 in range(0, BT, step):  # blocks of frames, not a loop per frame
         f1 = min(BT, f0 + step)
+        Pb = P[:, f0:f1].reshape(3, -1)
         # flat[j, f, n] = (f0 + f) * M + candidates[b(f), n, j]: flat index into C and Nrm
-        flat = (np.arange(f0, f1, dtype=np.intp) * M)[None, :, None] + cand[:, batch_of_frame[f0:f1]]
-        acr = None if across is None else np.moveaxis(across, 2, 0)[:, batch_of_frame[f0:f1] if across.shape[0] > 1 else np.zeros(f1 - f0, np.intp)]
-        if extra is not None:
-            ke = extra.shape[2]
-            flat = np.concatenate([flat, (np.arange(f0, f1, dtype=np.intp) * M)[None, :, None] + np.moveaxis(extra[f0:f1], 2, 0)], 0)
+        flat = ((np.arange(f0, f1, dtype=np.intp) * M)[None, :, None] + cand[:, batch_of_frame[f0:f1]]).reshape(k, -1)
+        acr = None if across is None else np.moveaxis(across, 2, 0)[:, batch_of_frame[f0:f1] if across.shape[0] > 1 else np.zeros(f1 - f0, np.intp)].reshape(k, -1)
+        s_min = _screen_planes(Pb, Nrm, offset, flat)
+        if dynamic:
+            extra = _dynamic_candidates(Pb, C, flat, plan, f0, f1)
+            flat = np.concatenate([flat, extra], 0)
+            s_min = np.minimum(s_min, _screen_planes(Pb, Nrm, offset, extra))
             if acr is not None:
-                acr = np.concatenate([acr, np.zeros((ke,) + acr.shape[1:], bool)], 0)
-        out[:, f0:f1] = _push_block(
-            P[:, f0:f1].reshape(3, -1), C, Nrm, flat.reshape(flat.shape[0], -1), None if acr is None else acr.reshape(acr.shape[0], -1),
-            M, margin_m, max_push_m, boundary, reach_m, iterations,
-        ).reshape(3, f1 - f0, N)
+                acr = np.concatenate([acr, np.zeros(extra.shape, bool)], 0)
+        live = np.flatnonzero(s_min < keep)
+        res = Pb.copy()
+        if len(live):
+            res[:, live] = _push_block(
+                Pb[:, live], C, Nrm, flat[:, live], None if acr is None else acr[:, live],
+                M, margin_m, max_push_m, boundary, reach_m, iterations,
+            )
+        out[:, f0:f1] = res.reshape(3, f1 - f0, N)
     return out
 
 
@@ -277,55 +295,90 @@ def _push_planes(
 _BLOCK_ELEMENTS = 160_000
 
 
+def _screen_tolerance(P: np.ndarray, C: np.ndarray) -> float:
+    """Rounding bound, metres, of the screening s_j = p . n_j - c_j . n_j against (p - c_j) . n_j
+    in float32: a few ulp of the largest coordinate (|n_j| = 1), with a factor 10 to spare."""
+    r = max(float(np.abs(P).max(initial=0.0)), float(np.abs(C).max(initial=0.0)))
+    return 10 * 8 * float(np.finfo(np.float32).eps) * (1.0 + r)
+
+
+def _screen_planes(P: np.ndarray, Nrm: np.ndarray, offset: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """min_j s_j = min_j (p . n_j - o_j) per point: P (3, L), flat (k, L) into Nrm (3, .) and
+    offset (.,) = c . n; returns (L,) float32. In-place arithmetic: no (k, L) temporaries."""
+    s = np.take(offset, flat)
+    np.negative(s, out=s)
+    t = np.empty_like(s)
+    for c in range(3):
+        np.take(Nrm[c], flat, out=t)
+        t *= P[c]
+        s += t
+    return s.min(axis=0)
+
+
 def _push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m, iterations):
-    """One block: P (3, L) points, flat (k, L) candidate indices into C, Nrm (3, .), across (k, L)."""
+    """Screened points: P (3, L), flat (k, L) candidate indices into C, Nrm (3, .), across (k, L).
+
+    Each pass after the first revisits only the points the previous one moved (the others are
+    where they were, so a pass would decide the same for them again). Returns (3, L) float32.
+    """
     P = P.astype(np.float32, copy=True)
+    live = np.arange(P.shape[1])
+    for _ in range(max(int(iterations), 1)):
+        if len(live) == 0:
+            break
+        delta, na, moved = _push_pass(P[:, live], C, Nrm, flat[:, live], None if across is None else across[:, live],
+                                      M, margin_m, max_push_m, boundary, reach_m)
+        live = live[moved]
+        for c in range(3):
+            P[c, live] += delta * na[c]  # p' = p + delta n*
+    return P
+
+
+def _push_pass(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m):
+    """One pass over points P (3, L): returns the push lengths delta (A,) != 0 and directions
+    n* (3 x (A,)) of the A points it moves, and their positions ``moved`` (A,) in L."""
     L = P.shape[1]
     G = [np.take(C[c], flat) for c in range(3)]  # (k, L) candidate coordinates
     rows = np.arange(L, dtype=np.intp)
     Gn = [np.take(Nrm[c], flat) for c in range(3)]  # (k, L) candidate normals n_j
-    for _ in range(max(int(iterations), 1)):
-        D = [P[c] - G[c] for c in range(3)]  # p - c_j
-        d2 = D[0] * D[0] + D[1] * D[1] + D[2] * D[2]
-        s_all = D[0] * Gn[0] + D[1] * Gn[1] + D[2] * Gn[2]  # s_j = (p - c_j) . n_j
-        j = np.argmin(d2, axis=0)  # closest candidate c*
-        # ... unless p lies behind the plane of a candidate it projects onto (tangential offset <
-        # _TANGENT_M) that is not much farther (< _FARTHER_M more): then p is inside that part,
-        # and the nearest vertex (outside an arm, say) misjudges it; take the deepest such plane.
-        s_near = np.take_along_axis(s_all, j[None], 0)[0]
-        dmin = np.sqrt(np.take_along_axis(d2, j[None], 0)[0])
-        behind = (s_all < 0) & (d2 - s_all * s_all < _TANGENT_M**2) & (np.sqrt(d2) <= dmin + _FARTHER_M)
-        deep = np.argmin(np.where(behind, s_all, np.inf), axis=0)
-        j = np.where(behind.any(axis=0) & (np.take_along_axis(s_all, deep[None], 0)[0] < s_near), deep, j)
-        pick = j * L + rows
-        sel = np.take(flat, pick)
-        ns = [np.take(Gn[c], pick) for c in range(3)]  # n*
-        s = np.take(s_all, pick)  # s = (p - c*) . n*
-        delta = margin_m - s
-        act = np.flatnonzero(delta > 0)  # only these need a push
-        if len(act) == 0:
-            break
-        delta, s_a = delta[act], s[act]
-        na = [ns[c][act] for c in range(3)]
-        Gna = [Gn[c][:, act] for c in range(3)]
-        a = na[0] * Gna[0] + na[1] * Gna[1] + na[2] * Gna[2]  # n* . n_j
-        s_j = s_all[:, act]
-        # a surface ahead of p (in the push direction), facing it and close in this frame squeezes:
-        # balanced push delta_j = (s_j - s*) / (1 - n*.n_j) (the module docstring)
-        ahead = -(D[0][:, act] * na[0] + D[1][:, act] * na[1] + D[2][:, act] * na[2]) > 0
-        if across is not None:
-            ahead = ahead | across[:, act]
-        opposing = ahead & (a < _OPPOSING_COS) & (d2[:, act] < _SQUEEZE_RADIUS_M**2)
-        bal = np.where(opposing, (s_j - s_a) / np.maximum(1.0 - a, 1.0), np.inf).min(axis=0)
-        delta = np.minimum(delta, np.maximum(bal, 0.0))
-        if max_push_m is not None:
-            delta = np.minimum(delta, max_push_m)
-        if boundary is not None:
-            tangential2 = d2[j[act], act] - s_a * s_a
-            delta = np.where(boundary[sel[act] % M] & (tangential2 > reach_m**2), 0.0, delta)
-        for c in range(3):
-            P[c, act] += delta * na[c]  # p' = p + delta n*
-    return P
+    D = [P[c] - G[c] for c in range(3)]  # p - c_j
+    d2 = D[0] * D[0] + D[1] * D[1] + D[2] * D[2]
+    s_all = D[0] * Gn[0] + D[1] * Gn[1] + D[2] * Gn[2]  # s_j = (p - c_j) . n_j
+    j = np.argmin(d2, axis=0)  # closest candidate c*
+    # ... unless p lies behind the plane of a candidate it projects onto (tangential offset <
+    # _TANGENT_M) that is not much farther (< _FARTHER_M more): then p is inside that part,
+    # and the nearest vertex (outside an arm, say) misjudges it; take the deepest such plane.
+    s_near = np.take_along_axis(s_all, j[None], 0)[0]
+    dmin = np.sqrt(np.take_along_axis(d2, j[None], 0)[0])
+    behind = (s_all < 0) & (d2 - s_all * s_all < _TANGENT_M**2) & (np.sqrt(d2) <= dmin + _FARTHER_M)
+    deep = np.argmin(np.where(behind, s_all, np.inf), axis=0)
+    j = np.where(behind.any(axis=0) & (np.take_along_axis(s_all, deep[None], 0)[0] < s_near), deep, j)
+    pick = j * L + rows
+    sel = np.take(flat, pick)
+    ns = [np.take(Gn[c], pick) for c in range(3)]  # n*
+    s = np.take(s_all, pick)  # s = (p - c*) . n*
+    delta = margin_m - s
+    act = np.flatnonzero(delta > 0)  # only these need a push
+    delta, s_a = delta[act], s[act]
+    na = [ns[c][act] for c in range(3)]
+    Gna = [Gn[c][:, act] for c in range(3)]
+    a = na[0] * Gna[0] + na[1] * Gna[1] + na[2] * Gna[2]  # n* . n_j
+    s_j = s_all[:, act]
+    # a surface ahead of p (in the push direction), facing it and close in this frame squeezes:
+    # balanced push delta_j = (s_j - s*) / (1 - n*.n_j) (the module docstring)
+    ahead = -(D[0][:, act] * na[0] + D[1][:, act] * na[1] + D[2][:, act] * na[2]) > 0
+    if across is not None:
+        ahead = ahead | across[:, act]
+    opposing = ahead & (a < _OPPOSING_COS) & (d2[:, act] < _SQUEEZE_RADIUS_M**2)
+    bal = np.where(opposing, (s_j - s_a) / np.maximum(1.0 - a, 1.0), np.inf).min(axis=0)
+    delta = np.minimum(delta, np.maximum(bal, 0.0))
+    if max_push_m is not None:
+        delta = np.minimum(delta, max_push_m)
+    if boundary is not None:
+        tangential2 = d2[j[act], act] - s_a * s_a
+        delta = np.where(boundary[sel[act] % M] & (tangential2 > reach_m**2), 0.0, delta)
+    moved = delta != 0
+    return delta[moved], [n[moved] for n in na], act[moved]
 
 
 # ------------------------------------------------------------------------------ plan
@@ -349,9 +402,12 @@ def boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     """(V,) bool: vertices on an edge used by a single face (the border of an open mesh)."""
     faces = np.asarray(faces, np.int64)
     e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    uniq, count = np.unique(e, axis=0, return_counts=True)
+    # edge (a, b), a < b, as one int64 key a * V + b: a 1-D unique (np.unique(axis=0) is ~10x slower)
+    uniq, count = np.unique(e[:, 0] * num_vertices + e[:, 1], return_counts=True)
+    single = uniq[count == 1]
     out = np.zeros(num_vertices, bool)
-    out[uniq[count == 1].ravel()] = True
+    out[single // num_vertices] = True
+    out[single % num_vertices] = True
     return out
 
 
@@ -460,22 +516,34 @@ class GuardPlan:
             point_bone = np.argmax(pw, 1)
             collider_bone = np.argmax(cw[usable], 1)
             skin_part = np.empty((B, N, k_skin), np.int64)
-            for bone in np.unique(point_bone):  # one KD-tree per dominant bone (<= J)
-                rows = np.flatnonzero(point_bone == bone)
-                others = usable[collider_bone != bone]
-                kk = int(min(k_skin, len(others)))
-                for b in range(B):
-                    got = others[cKDTree(collider_rest[b][others]).query(points_rest[b][rows], k=kk)[1].reshape(len(rows), kk)]
-                    skin_part[b, rows] = np.pad(got, ((0, 0), (0, k_skin - kk)), mode="edge")
+            # the nearest _SKIN_SCAN collider vertices, in order, hold the k_skin nearest of another
+            # bone for most points; the rest get a KD-tree per dominant bone (the exact search)
+            kk = int(min(_SKIN_SCAN, len(usable)))
+            for b in range(B):
+                scan = trees[b].query(points_rest[b], k=kk)[1].reshape(N, kk)  # (N, kk) into usable
+                other = collider_bone[scan] != point_bone[:, None]
+                enough = other.sum(1) >= k_skin
+                # first k_skin "other" columns of each row (stable sort puts them first, in order)
+                first = np.argsort(~other, axis=1, kind="stable")[:, :k_skin]
+                skin_part[b] = usable[np.take_along_axis(scan, first, 1)]
+                for bone in np.unique(point_bone[~enough]):  # one KD-tree per dominant bone (<= J)
+                    rows = np.flatnonzero((point_bone == bone) & ~enough)
+                    others = usable[collider_bone != bone]
+                    kb = int(min(k_skin, len(others)))
+                    got = others[cKDTree(collider_rest[b][others]).query(points_rest[b][rows], k=kb)[1].reshape(len(rows), kb)]
+                    skin_part[b, rows] = np.pad(got, ((0, 0), (0, k_skin - kb)), mode="edge")
             parts.append(skin_part)
             # Points that another part can reach when a joint bends: their rest-pose candidates
             # cannot follow that part (it moves relative to the point), so the guard searches
             # the region around them in every posed frame.
             d_other = np.linalg.norm(points_rest[0] - collider_rest[0][skin_part[0, :, 0]], axis=-1)
             dynamic_points = np.flatnonzero(d_other < DYNAMIC_RISK_M)
-            region = np.unique(np.concatenate(
-                [np.asarray(r, np.int64) for r in trees[0].query_ball_point(points_rest[0][dynamic_points], DYNAMIC_REGION_M)] + [np.zeros(0, np.int64)]
-            ))
+            # the usable collider vertices within DYNAMIC_REGION_M of a dynamic point (one nearest
+            # query per collider vertex: ~5x faster than query_ball_point's lists, same set)
+            region = np.zeros(0, np.int64)
+            if len(dynamic_points):
+                d, _ = cKDTree(points_rest[0][dynamic_points]).query(collider_rest[0][usable], k=1, distance_upper_bound=2 * DYNAMIC_REGION_M)
+                region = np.flatnonzero(d <= DYNAMIC_REGION_M)
             dynamic_region_ids = usable[region]
         else:
             dynamic_points, dynamic_region_ids = None, None
@@ -502,6 +570,7 @@ class GuardPlan:
         face_ids, inc = vertex_face_incidence(faces, M, collider_ids)
         e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
         reach = float(np.median(np.linalg.norm(e, axis=-1)))
+        has_dynamic = dynamic_points is not None and len(dynamic_points) > 0
         return cls(
             collider_ids=collider_ids,
             candidates=local.astype(np.int32),
@@ -512,8 +581,8 @@ class GuardPlan:
             orientation=orientation,
             boundary=bnd[collider_ids] if bnd.any() else None,
             reach_m=reach,
-            dynamic_points=dynamic_points if dynamic_points is not None and len(dynamic_points) else None,
-            dynamic_region=np.searchsorted(collider_ids, dynamic_region_ids) if dynamic_points is not None and len(dynamic_points) else None,
+            dynamic_points=dynamic_points if has_dynamic else None,
+            dynamic_region=np.searchsorted(collider_ids, dynamic_region_ids) if has_dynamic else None,
         )
 
     def collider_planes(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -579,30 +648,32 @@ def guard(
     if np.shape(collider)[:2] != (B, T):
         raise InputShapeError("collider", f"({B}, {T}, M, 3)", np.shape(collider))
     cp, cn = plan.collider_planes(collider)
-    extra = _dynamic_candidates(points, cp, plan) if plan.dynamic_points is not None else None
     out = _push_planes(
         _planes(points).reshape(3, B * T, N), cp, cn, plan.candidates, plan.across, T, len(plan.collider_ids), margin_m,
-        max_push_m, plan.boundary, plan.reach_m, iterations, extra,
+        max_push_m, plan.boundary, plan.reach_m, iterations, plan,
     )
     return np.moveaxis(out.reshape(3, B, T, N), 0, -1)
 
 
-def _dynamic_candidates(points: np.ndarray, collider_planes: np.ndarray, plan: GuardPlan) -> np.ndarray:
-    """Per-frame nearest candidates (BT, N, DYNAMIC_K) local collider ids: for the plan's dynamic
-    points, the DYNAMIC_K nearest of its dynamic region in that frame (KD-tree per frame, C code;
-    the region is a few thousand vertices); every other point repeats its first plan candidate."""
-    B, T, N, _ = points.shape
+def _dynamic_candidates(Pb: np.ndarray, C: np.ndarray, flat: np.ndarray, plan: GuardPlan, f0: int, f1: int) -> np.ndarray:
+    """Per-frame nearest candidates of frames f0..f1 (one block of ``_push_planes``): for the
+    plan's dynamic points, the DYNAMIC_K nearest of its dynamic region in that frame (a KD-tree
+    per frame, C code; the region is a few thousand vertices); every other point repeats its
+    first plan candidate.
+
+    Pb (3, L) the block's points (L = F * N), C (3, BT*S), flat (k, L) plan candidates;
+    returns (DYNAMIC_K, L) flat indices into C.
+    """
     S = len(plan.collider_ids)
-    C = collider_planes.reshape(3, B * T, S)
+    N = plan.candidates.shape[1]
     dyn, region = plan.dynamic_points, plan.dynamic_region
     k = int(min(DYNAMIC_K, len(region)))
-    base = np.broadcast_to(plan.candidates[..., :1], (plan.candidates.shape[0], N, 1))
-    extra = np.repeat(np.repeat(base, k, axis=2)[:, None], T, axis=1)
-    extra = np.broadcast_to(extra, (B, T, N, k)).reshape(B * T, N, k).copy()
-    P = points.reshape(B * T, N, 3)
-    for f in range(B * T):  # a KD-tree per frame: the search itself runs in C
-        tree = cKDTree(C[:, f, region].T)
-        extra[f, dyn] = region[tree.query(P[f, dyn], k=k, workers=-1)[1].reshape(len(dyn), k)]
+    C3 = C.reshape(3, -1, S)
+    extra = np.repeat(flat[:1], k, axis=0)
+    for i, f in enumerate(range(f0, f1)):  # a KD-tree per frame: the search itself runs in C
+        tree = cKDTree(C3[:, f, region].T)
+        col = i * N + dyn
+        extra[:, col] = f * S + region[tree.query(Pb[:, col].T, k=k)[1].reshape(len(dyn), k)].T
     return extra
 
 

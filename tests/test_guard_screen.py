@@ -1,0 +1,52 @@
+"""Collision guard shortcuts against the naive versions: the screen, the plan's searches."""
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from inference.guard import DEFAULT_MARGIN_M, GuardPlan, _planes, _push_block, boundary_vertices, push_outside, vertex_normals
+
+
+def test_screened_push_equals_pushing_every_point():
+    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    verts, faces = s.vertices.astype(np.float32), s.faces
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(2000, 3))
+    pts = (d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.97, 1.03, (2000, 1))).astype(np.float32)
+    cand = cKDTree(verts).query(pts, k=6)[1]
+    nrm = vertex_normals(verts[None], faces)
+    out = push_outside(pts[None, None], verts[None, None], nrm[None], cand, DEFAULT_MARGIN_M, iterations=2)[0, 0]
+    # naive: every point through every pass (no screen), flat indices of frame 0
+    naive = _push_block(_planes(pts[None, None]), _planes(verts[None, None]), _planes(nrm[None]), cand.T.astype(np.intp),
+                        None, len(verts), DEFAULT_MARGIN_M, None, None, 0.0, 2)
+    np.testing.assert_array_equal(out, naive.T)
+    assert 0 < (out != pts).any(1).sum() < len(pts)
+
+
+def test_boundary_vertices_match_naive_edge_count():
+    g = trimesh.creation.icosphere(subdivisions=2)
+    faces = g.faces[g.vertices[g.faces].mean(1)[:, 2] < 0.3]  # an open cap
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, count = np.unique(edges, axis=0, return_counts=True)
+    naive = np.zeros(len(g.vertices), bool)
+    naive[uniq[count == 1].ravel()] = True
+    np.testing.assert_array_equal(boundary_vertices(faces, len(g.vertices)), naive)
+    assert naive.any()
+
+
+def test_skin_candidates_are_the_nearest_of_another_bone():
+    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    verts, faces = s.vertices.astype(np.float32), s.faces
+    bone = (verts[:, 2] > 0.2).astype(int) + (verts[:, 0] > 0.5).astype(int)  # three "bones"
+    cw = np.eye(3, dtype=np.float32)[bone]
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(300, 3))
+    pts = (d / np.linalg.norm(d, axis=1, keepdims=True) * 1.01).astype(np.float32)
+    pw = np.eye(3, dtype=np.float32)[rng.integers(0, 3, 300)]
+    plan = GuardPlan.build(pts[None], verts[None], faces, 4, skin=(pw, cw), k_skin=2)
+    skin = plan.collider_ids[plan.candidates[0, :, 6:8]]  # after 4 nearest and 2 ahead
+    pb = pw.argmax(1)
+    for b in range(3):  # naive: a KD-tree over the vertices of the other bones
+        rows = pb == b
+        others = np.flatnonzero(bone != b)
+        want = others[cKDTree(verts[others]).query(pts[rows], k=2)[1]]
+        np.testing.assert_array_equal(np.sort(skin[rows], 1), np.sort(want, 1))
