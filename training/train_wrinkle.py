@@ -47,7 +47,7 @@ from training.datasets import (
 )
 from training.manifest import git_commit
 from training.models import WrinkleGRU
-from training.physics import ClothGeometry, energy_terms, inertia_energy
+from training.physics import TRAIN_K_COLLISION, ClothGeometry, body_signed_distances, energy_terms, inertia_energy
 from training.train_fit import CHECKPOINT_DIR, load_fit
 
 log = logging.getLogger(__name__)
@@ -62,6 +62,7 @@ class WrinkleConfig:
     max_steps: int = 100_000
     bank_shapes: int = 256  # training shapes: 64 box corners + uniform (a new one per window)
     candidates: int = 8  # KD-tree collision candidates per garment vertex
+    k_collision: float | None = TRAIN_K_COLLISION  # eq. 5.12 stiffness of the training loss, J/m^3 (None: the material's)
     basis_size: int = 192  # manifold harmonics of the output basis
     hidden: int = 256  # GRU width (SNUG §5.2.5: 4 GRUs of 256, tanh)
     layers: int = 4
@@ -182,9 +183,13 @@ def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: Sha
                 for k, v in terms.items():
                     per_frame = float(v.sum()) / (T if k != "inertia" else max(T - 2, 1))
                     acc[name][k] = acc[name].get(k, 0.0) + per_frame / len(bank)
+                d = body_signed_distances(x.reshape(-1, *x.shape[2:]), batch.body_points, batch.body_normals, batch.candidates)
+                acc[name]["inside_fraction"] = acc[name].get("inside_fraction", 0.0) + float((d < 0).float().mean()) / len(bank)
         for name, terms in acc.items():
+            inside = terms.pop("inside_fraction")
             out[name] = {f"{k}_j_per_frame": v for k, v in terms.items()}
             out[name]["static_j_per_frame"] = sum(v for k, v in terms.items() if k != "inertia")
+            out[name]["inside_fraction"] = inside  # tangent-plane d < 0 of eq. 5.12, all frames and vertices
     out["frames"] = T
     out["shapes"] = len(bank)
     return out
@@ -198,7 +203,8 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     gen = torch.Generator().manual_seed(config.seed)
     body = BodyModel.load()
     asset = GarmentCatalog.load().get(config.garment)
-    cloth = ClothGeometry.from_asset(asset, torch.float32)
+    cloth = ClothGeometry.from_asset(asset, torch.float32)  # the physical material: metrics
+    train_cloth = cloth.with_collision_stiffness(config.k_collision)  # the training loss
     neutral = body.shape(NEUTRAL_PHENOTYPES[None])
 
     t_bank = time.perf_counter()
@@ -248,7 +254,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         x = garment_frames(model, batch, weights, h0)
         if config.fresh_candidates:
             batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
-        loss, terms = snug_loss(cloth, x, batch, dt_s)
+        loss, terms = snug_loss(train_cloth, x, batch, dt_s)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
@@ -311,11 +317,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--max-steps", type=int, default=WrinkleConfig.max_steps)
     p.add_argument("--threads", type=int, default=WrinkleConfig.threads)
     p.add_argument("--init", default=None, help="continue from this wrinkle.pt (warm start)")
+    p.add_argument("--k-collision", type=float, default=WrinkleConfig.k_collision, help="collision stiffness of the training loss, J/m^3")
+    p.add_argument("--lr", type=float, default=WrinkleConfig.lr, help="Adam learning rate of the first phase")
+    p.add_argument("--lr-final", type=float, default=WrinkleConfig.lr_final, help="Adam learning rate after lr_drop of the budget")
     p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank and a short clip (CI); needs fit_smoke.pt")
     p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads, init=args.init)
+    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads, init=args.init, k_collision=args.k_collision, lr=args.lr, lr_final=args.lr_final)
     if args.smoke:
         kw.update(SMOKE)
     record = train_wrinkle(WrinkleConfig(**kw), smoke=args.smoke, out_dir=args.out)

@@ -1,0 +1,54 @@
+"""The Part 7 evaluation (training.evaluate): one garment, one body, a few collision frames."""
+import numpy as np
+import pytest
+
+from training.evaluate import BEGIN, END, BODIES, evaluate, markdown, per_frame_energies, settle_check, write_section
+from training.physics import ClothGeometry
+
+
+@pytest.fixture(scope="module")
+def rows():
+    return evaluate("01_01", every=172, garments=["trousers"], bodies={"neutral": BODIES["neutral"]})
+
+
+def test_rows_cover_every_method_with_finite_numbers(rows):
+    assert [r.method for r in rows] == ["learned", "retarget", "lbs"]
+    for r in rows:
+        assert r.frames == 688 and r.collision_frames == 4
+        assert 0.0 <= r.after["inside_pct"] <= 100.0 and 0.0 <= r.before["inside_pct"] <= 100.0
+        assert all(np.isfinite(v) for v in r.energies_j.values())
+    retarget = next(r for r in rows if r.method == "retarget")
+    assert retarget.energies_j["gravity"] == 0.0  # the gravity column is relative to the retarget
+
+
+def test_neutral_template_is_the_retarget_on_the_neutral_body(rows):
+    by = {r.method: r for r in rows}
+    assert by["lbs"].energies_j["strain"] == pytest.approx(by["retarget"].energies_j["strain"], rel=1e-4)
+
+
+def test_energies_of_a_still_rest_garment():
+    from inference.garment import GarmentCatalog
+
+    asset = GarmentCatalog.load().get("trousers")
+    cloth = ClothGeometry.from_asset(asset)
+    still = np.repeat(asset.rest_vertices[None], 4, 0)
+    e = per_frame_energies(cloth, still, 30.0)
+    assert e["strain"] == pytest.approx(0.0, abs=1e-6) and e["inertia"] == pytest.approx(0.0, abs=1e-9)
+    moved = still + np.array([0.0, 0.0, 0.01], np.float32) * np.arange(4)[:, None, None] ** 2  # constant acceleration
+    assert per_frame_energies(cloth, moved, 30.0)["inertia"] > 0.0
+
+
+def test_report_section_is_replaced_in_place(tmp_path, rows):
+    doc = tmp_path / "evaluation.md"
+    doc.write_text("# Evaluation\n\nhand-written text\n")
+    write_section(doc, markdown(rows, [], None, "cmd one", 172))
+    write_section(doc, markdown(rows, [], None, "cmd two", 172))
+    text = doc.read_text()
+    assert text.count(BEGIN) == 1 and text.count(END) == 1
+    assert "hand-written text" in text and "cmd two" in text and "cmd one" not in text
+
+
+def test_settle_check_reports_hem_speed_after_the_stop():
+    r = settle_check(move_frames=20, hold_frames=12)
+    assert r.stop_frame == 20 and len(r.hem_speed_mm_per_frame) == 12  # one per held frame
+    assert all(np.isfinite(r.hem_speed_mm_per_frame))
