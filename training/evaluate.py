@@ -282,6 +282,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--garments", nargs="*")
     p.add_argument("--bodies", nargs="*", choices=list(BODIES), help="default: all")
     p.add_argument("--reference-static", type=int, metavar="SHAPES", help="first build the quasi-static references with this many shapes")
+    p.add_argument("--reference-only", action="store_true", help="only build the references (with --reference-static)")
     p.add_argument("--no-settle", action="store_true")
     p.add_argument("--models", type=Path, help="learned models directory (default: assets/models)")
     p.add_argument("--write", type=Path, help="write the tables into this Markdown file (its generated section)")
@@ -291,6 +292,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.reference_static:
         for g in garments:
             build_static_reference(g, args.reference_static)
+    if args.reference_only:
+        return
     bodies = {k: BODIES[k] for k in args.bodies} if args.bodies else BODIES
     models = LearnedModels(args.models) if args.models else None
     rows = evaluate(args.clip, args.every, garments, bodies, models=models)

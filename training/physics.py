@@ -192,6 +192,7 @@ class ClothGeometry:
     k_scale: torch.Tensor
     rest_dihedral_rad: torch.Tensor
     material: ClothMaterial
+    collision_depth_cap_m: float | None = None  # training only: eq. 5.12 continued linearly beyond this depth
 
     @classmethod
     def from_mesh(cls, rest_vertices: np.ndarray, faces: np.ndarray, material: ClothMaterial | dict, dtype: torch.dtype = torch.float64) -> "ClothGeometry":
@@ -236,11 +237,14 @@ class ClothGeometry:
     def dtype(self) -> torch.dtype:
         return self.dm_inv.dtype
 
-    def with_collision_stiffness(self, k_collision: float | None) -> "ClothGeometry":
-        """The same cloth with k_collision of eq. 5.12 replaced (J/m^3); None keeps the material's."""
-        if k_collision is None:
-            return self
-        return replace(self, material=replace(self.material, k_collision=float(k_collision)))
+    def with_collision_stiffness(self, k_collision: float | None, depth_cap_m: float | None = None) -> "ClothGeometry":
+        """The same cloth with k_collision of eq. 5.12 replaced (J/m^3; None keeps the material's)
+        and, with ``depth_cap_m``, the penalty continued linearly (force capped at 3 k cap^2)
+        beyond that depth below the margin: LBS squeezes (an arm sunk into the torso) leave
+        vertices that no displacement can free, and the cubic's unbounded force there swamps the
+        other terms (training only; the physical energy has no cap)."""
+        cloth = self if k_collision is None else replace(self, material=replace(self.material, k_collision=float(k_collision)))
+        return cloth if depth_cap_m is None else replace(cloth, collision_depth_cap_m=float(depth_cap_m))
 
     @property
     def num_vertices(self) -> int:
@@ -441,6 +445,10 @@ def collision_energy(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.T
     depth = torch.clamp(m.collision_margin_m - d, min=0.0)
     if active is not None:
         depth = depth * active.to(depth.dtype)
+    cap = cloth.collision_depth_cap_m
+    if cap is not None:  # k (c^3 + 3 c^2 (depth - c)) beyond the cap c: C1, force 3 k c^2
+        capped = torch.clamp(depth, max=cap)
+        return m.k_collision * (capped**3 + 3.0 * cap * cap * (depth - capped)).sum(-1)
     return m.k_collision * (depth * depth * depth).sum(-1)  # eq. 5.12
 
 
