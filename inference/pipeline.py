@@ -39,13 +39,12 @@ class DrapeOptions:
     body shape + the template's collision correction) or 'none' (plain LBS of the neutral
     template). dynamics: 'learned' (the wrinkle GRU R_L over the motion descriptor) or 'none'.
     The learned modes need the garment's models (``MissingModelError`` otherwise).
-    Default: the retarget baseline without dynamics. The shipped learned models are
-    under-trained (docs/evaluation.md: 3-11 % of vertices inside the body before the guard vs
-    ~0 % for the retarget), so they are opt-in until they beat the baseline.
+    Default: the learned model, thesis eq. 4.2 (retarget + R_G + R_L, then LBS); the baselines
+    stay selectable for comparison (docs/evaluation.md compares the three).
     margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost."""
 
-    fit: FitMode = "retarget"
-    dynamics: DynamicsMode = "none"
+    fit: FitMode = "learned"
+    dynamics: DynamicsMode = "learned"
     guard: bool = True
     margin_m: float = 0.002
     layer_gap_m: float = 0.003

@@ -77,14 +77,14 @@ class GarmentSpec(_Strict):
 class DrapeOptions(_Strict):
     fps: float = Field(30.0, ge=1.0, le=120.0, allow_inf_nan=False, description="output frame rate")
     include_body: bool = Field(True, description="add the posed body to the output")
-    fit: Literal["retarget", "learned", "none"] = Field(
-        "retarget",
-        description="garment fit to the body shape: the .mhclo retarget baseline (default); 'learned' = retarget + the "
-        "fit regressor R_G (ONNX, self-supervised; under-trained in this version, see docs/evaluation.md); "
+    fit: Literal["learned", "retarget", "none"] = Field(
+        "learned",
+        description="garment fit to the body shape: 'learned' (default) = the .mhclo retarget + the fit regressor R_G "
+        "(ONNX, trained self-supervised on the SNUG physics energies); 'retarget' = the .mhclo retarget baseline; "
         "'none' = plain LBS of the neutral template",
     )
-    dynamics: Literal["none", "learned"] = Field(
-        "none", description="dynamic wrinkles: none (default) or 'learned' = the wrinkle GRU R_L over the motion descriptor (eq. 6.17)"
+    dynamics: Literal["learned", "none"] = Field(
+        "learned", description="dynamic wrinkles: 'learned' (default) = the wrinkle GRU R_L over the motion descriptor (eq. 6.17); 'none' = static fit"
     )
     guard: bool = Field(True, description="push garment vertices out of the body after skinning")
     margin_m: float = Field(0.002, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")

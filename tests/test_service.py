@@ -155,8 +155,9 @@ def test_learned_models_are_selectable(client):
         assert r.status_code == 200, r.text
         return np.load(io.BytesIO(r.content), allow_pickle=False)["garment_0_vertices"]
 
-    base = verts({})
+    base = verts({"fit": "retarget", "dynamics": "none"})
     learned = verts({"fit": "learned", "dynamics": "learned"})
+    assert np.array_equal(verts({}), learned)  # the learned model is the default
     assert base.shape == learned.shape and np.isfinite(learned).all()
     assert np.abs(learned - base).max() > 1e-3  # the models change the garment
     # the wrinkle GRU output varies over time beyond the skinning (frames differ in unposed space)
