@@ -80,9 +80,11 @@ class OutputBasis(nn.Module):
     def forward(self, coeffs: torch.Tensor) -> torch.Tensor:
         lead = coeffs.shape[:-1]
         c = coeffs.reshape(-1, self.size, 3)  # (N, K, 3)
-        # D[n, v, c] = sum_k Phi[v, k] C[n, k, c]   (one MatMul: (V, K) @ (N, K, 3))
-        d = torch.matmul(self.basis, c)
-        return d.reshape(*lead, self.num_vertices, 3)
+        # D[n, v, c] = sum_k Phi[v, k] C[n, k, c] as one GEMM (V, K) @ (K, 3N): the basis is read
+        # once for all N frames (a broadcast (V, K) @ (N, K, 3) reads it per frame; measured 6x slower)
+        n = c.shape[0]
+        d = torch.matmul(self.basis, c.permute(1, 0, 2).reshape(self.size, 3 * n))  # (V, 3N)
+        return d.reshape(self.num_vertices, n, 3).permute(1, 0, 2).reshape(*lead, self.num_vertices, 3)
 
 
 class FitRegressor(nn.Module):
