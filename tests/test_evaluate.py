@@ -52,3 +52,28 @@ def test_settle_check_reports_hem_speed_after_the_stop():
     r = settle_check(move_frames=20, hold_frames=12)
     assert r.stop_frame == 20 and len(r.hem_speed_mm_per_frame) == 12  # one per held frame
     assert all(np.isfinite(r.hem_speed_mm_per_frame))
+
+
+def test_reference_error_is_zero_for_the_method_that_made_the_reference(tmp_path, monkeypatch):
+    import json
+
+    import training.evaluate as ev
+    from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+    from inference.garment import GarmentCatalog
+    from inference.motion.clips import ClipLibrary, adapt_clip
+    from inference.pipeline import PoseSequence, drape
+
+    body = BodyModel.load()
+    shape = body.shape(NEUTRAL_PHENOTYPES[None])
+    clip = ClipLibrary().load("01_01")
+    rot, trans = adapt_clip(clip, body, shape)
+    motion = PoseSequence(rot[0, :8], trans[0, :8], clip.fps)
+    frames = drape(body, shape, motion, [GarmentCatalog.load().get("trousers")], ev.METHODS["retarget"]).garments[0].vertices[3:8]
+    monkeypatch.setattr(ev, "REFERENCE_DIR", tmp_path)
+    meta = {"start": 3, "dynamic_solves": {"max_force_n_median": 0.001}}
+    np.savez(tmp_path / "trousers_01_01.npz", vertices=frames, metadata=np.str_(json.dumps(meta)))
+    (row,) = ev.reference_errors("01_01", ["trousers", "tshirt"])
+    assert row.garment == "trousers" and row.frames == 5 and row.start == 3
+    assert row.error_cm["retarget"] < 1e-4
+    assert row.error_cm["learned"] > 0.05
+    assert "| trousers | 3-7 |" in markdown([], [], None, "cmd", 8, [row])

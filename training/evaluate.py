@@ -18,8 +18,9 @@ For every garment x body (``BODIES``: neutral + 4 corners of the adult box) x me
 
 Against the physics reference (``training.simulate``), when its files exist under
 ``build/reference``:
-- dynamic: ``<garment>_<clip>.npz`` (neutral body, ``python -m training.simulate --clip 01_01``):
-  mean vertex error in cm over its frames, each method after the guard;
+- dynamic: ``<garment>_<clip>.npz`` (neutral body, ``python -m training.simulate --clip 01_01
+  --frames 60 --out build/reference/<garment>_01_01.npz``): mean vertex error in cm over its
+  frames, each method after the guard (``reference_errors``);
 - static: ``<garment>_static.npz`` (``python -m training.evaluate --reference-static``: quasi-static
   drapes of held-out shapes): mean vertex error in cm of the learned fit and of the retarget.
 
@@ -76,8 +77,16 @@ class Row:
     before: dict
     after: dict
     energies_j: dict  # mean per frame
-    reference_error_cm: float | None = None
     seconds: float = 0.0
+
+
+@dataclass
+class ReferenceRow:
+    garment: str
+    frames: int  # reference frames compared (clip frames start .. start + frames - 1)
+    start: int
+    error_cm: dict  # method -> mean vertex error over frames and vertices, after the guard
+    residual_force_n: float  # median over the reference's clip solves of the largest per-vertex residual force
 
 
 @dataclass
@@ -110,14 +119,34 @@ def per_frame_energies(cloth: ClothGeometry, frames: np.ndarray, fps: float, chu
     return {k: v / len(x) for k, v in sums.items()}
 
 
-def load_reference(garment: str, clip_id: str) -> tuple[np.ndarray, int] | None:
-    """The reference frames (T, V, 3) of ``build/reference/<garment>_<clip>.npz`` and its first clip frame."""
-    path = REFERENCE_DIR / f"{garment}_{clip_id}.npz"
-    if not path.exists():
-        return None
-    with np.load(path, allow_pickle=False) as z:
-        start = int(json.loads(str(z["metadata"]))["start"]) if "metadata" in z.files else 0
-        return np.asarray(z["vertices"], np.float32), start
+def reference_errors(clip_id: str, garments: list[str], methods: dict[str, DrapeOptions] = METHODS, models: LearnedModels | None = None) -> list[ReferenceRow]:
+    """Mean vertex error (cm) of every method, after the guard, against the dynamic reference
+    ``build/reference/<garment>_<clip>.npz`` (``training.simulate``, neutral body) where it exists.
+    The methods run the clip from its frame 0 (the GRU's state builds up as at runtime)."""
+    body = BodyModel.load()
+    catalog = GarmentCatalog.load()
+    clip = ClipLibrary().load(clip_id)
+    shape = body.shape(NEUTRAL_PHENOTYPES[None])
+    rotations, translation = adapt_clip(clip, body, shape)
+    rows = []
+    for gid in garments:
+        path = REFERENCE_DIR / f"{gid}_{clip_id}.npz"
+        if not path.exists():
+            continue
+        with np.load(path, allow_pickle=False) as z:
+            ref = np.asarray(z["vertices"], np.float32)
+            meta = json.loads(str(z["metadata"]))
+        start = int(meta["start"])
+        end = start + len(ref)
+        motion = PoseSequence(rotations[0, :end], translation[0, :end], clip.fps)
+        errors = {}
+        for method, options in methods.items():
+            ours = drape(body, shape, motion, [catalog.get(gid)], _with(options, guard=True), neutral=shape, models=models).garments[0].vertices[start:end]
+            errors[method] = float(np.linalg.norm(ours - ref, axis=-1).mean() * 100.0)
+        force = meta.get("dynamic_solves", {}).get("max_force_n_median", float("nan"))
+        rows.append(ReferenceRow(gid, len(ref), start, errors, float(force)))
+        log.info("%s vs reference %s: %s cm", gid, path.name, {k: round(v, 2) for k, v in errors.items()})
+    return rows
 
 
 def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None = None, bodies: dict[str, np.ndarray] = BODIES,
@@ -138,7 +167,6 @@ def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None 
         for gid in garments or catalog.ids():
             asset = catalog.get(gid)
             cloth = ClothGeometry.from_asset(asset, torch.float32)
-            reference = load_reference(gid, clip_id) if body_name == "neutral" else None
             for method, options in methods.items():
                 t0 = time.perf_counter()
                 raw = drape(body, shape, motion, [asset], _with(options, guard=False), neutral=neutral, models=models).garments[0].vertices
@@ -146,15 +174,10 @@ def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None 
                 before = collision_rates(raw[None, ::every], body_sub, body.faces)
                 after = collision_rates(guarded[None, ::every], body_sub, body.faces)
                 energies = per_frame_energies(cloth, raw, clip.fps)
-                err = None
-                if reference is not None:
-                    ref, start = reference
-                    ours = guarded[start : start + len(ref)]
-                    err = float(np.linalg.norm(ours - ref[: len(ours)], axis=-1).mean() * 100.0)
-                rows.append(Row(body_name, gid, method, len(raw), body_sub.shape[1], before, after, energies, err, time.perf_counter() - t0))
-                log.info("%s %s %s: inside %.3f%% -> %.3f%% (clean %.3f -> %.3f); E %s; ref err %s cm (%.0f s)", body_name, gid, method,
+                rows.append(Row(body_name, gid, method, len(raw), body_sub.shape[1], before, after, energies, time.perf_counter() - t0))
+                log.info("%s %s %s: inside %.3f%% -> %.3f%% (clean %.3f -> %.3f); E %s (%.0f s)", body_name, gid, method,
                          before["inside_pct"], after["inside_pct"], before["inside_pct_clean"], after["inside_pct_clean"],
-                         {k: round(v, 4) for k, v in energies.items()}, None if err is None else round(err, 2), rows[-1].seconds)
+                         {k: round(v, 4) for k, v in energies.items()}, rows[-1].seconds)
             group = rows[-len(methods):]  # gravity relative to the retarget's (the body's own motion cancels)
             g0 = next((r.energies_j["gravity"] for r in group if r.method == "retarget"), 0.0)
             for r in group:
@@ -232,22 +255,29 @@ def settle_check(garment: str = "dress", clip_id: str = "walk", move_frames: int
 
 
 # ---------------------------------------------------------------------------------- the report
-def markdown(rows: list[Row], static: list[StaticRow], settle: SettleResult | None, command: str, every: int) -> str:
+def markdown(rows: list[Row], static: list[StaticRow], settle: SettleResult | None, command: str, every: int,
+             references: list[ReferenceRow] = ()) -> str:
     lines = [f"Command: `{command}`", ""]
     lines += [
-        "| body | garment | method | inside before guard (all / clean) % | inside after guard (all / clean) % | strain J | bending J | gravity J | inertia J | error vs reference cm |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| body | garment | method | inside before guard (all / clean) % | inside after guard (all / clean) % | strain J | bending J | gravity J | inertia J |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         e = r.energies_j
-        ref = "" if r.reference_error_cm is None else f"{r.reference_error_cm:.2f}"
         lines.append(f"| {r.body} | {r.garment} | {r.method} | {r.before['inside_pct']:.3f} / {r.before['inside_pct_clean']:.3f} | "
                      f"{r.after['inside_pct']:.3f} / {r.after['inside_pct_clean']:.3f} | {e['strain']:.4f} | {e['bending']:.5f} | "
-                     f"{e['gravity']:+.4f} | {e['inertia']:.5f} | {ref} |")
+                     f"{e['gravity']:+.4f} | {e['inertia']:.5f} |")
     if rows:
         lines += ["", f"Energies: mean per frame over all {rows[0].frames} frames, before the guard, the garment's physical material "
                   "(SNUG §5.3.1); gravity relative to the retarget's on the same frames. Collisions: every "
                   f"{every}th frame ({rows[0].collision_frames} frames)."]
+    if references:
+        names = list(references[0].error_cm)
+        lines += ["", "Mean vertex error against the physics reference (`training.simulate`, neutral body, after the guard):", "",
+                  "| garment | clip frames | " + " | ".join(f"{n} cm" for n in names) + " | reference residual force (median of max) N |",
+                  "|---|---|" + "---|" * len(names) + "---|"]
+        lines += [f"| {r.garment} | {r.start}-{r.start + r.frames - 1} | " + " | ".join(f"{r.error_cm[n]:.2f}" for n in names) + f" | {r.residual_force_n:.4f} |"
+                  for r in references]
     if static:
         lines += ["", "Fit regressor against quasi-static drapes (rest pose, held-out shapes):", "",
                   "| garment | shapes | learned fit error cm | retarget error cm | reference residual force (median of max) N |", "|---|---|---|---|---|"]
@@ -298,9 +328,10 @@ def main(argv: list[str] | None = None) -> None:
     models = LearnedModels(args.models) if args.models else None
     rows = evaluate(args.clip, args.every, garments, bodies, models=models)
     static = evaluate_static(garments, models)
+    references = reference_errors(args.clip, garments, models=models)
     settle = None if args.no_settle or "dress" not in garments else settle_check(models=models)
     command = "python -m training.evaluate " + " ".join(argv if argv is not None else __import__("sys").argv[1:])
-    text = markdown(rows, static, settle, command, args.every)
+    text = markdown(rows, static, settle, command, args.every, references)
     print(text)
     if args.write:
         write_section(args.write, text)
