@@ -12,13 +12,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from inference.body import linear_blend_skinning
 from inference.errors import InputShapeError, InputValueError
 
 MAX_INFLUENCES = 8  # skinning influences per vertex the exporters accept (glTF: 2 sets of 4)
 _RIGID_TOL = 1e-3  # max |R^T R - I| entry for a bone pose to count as rigid
 _WEIGHT_SUM_TOL = 1e-3  # max |sum_k w_vk - 1| accepted for skinning weights
-# LBS memory bound: frames posed per BLAS product (V x FRAME_BLOCK x 12 float32 temporaries).
-_FRAME_BLOCK = 32
 
 
 def _as_array(name: str, value, dtype) -> np.ndarray:
@@ -224,21 +223,11 @@ def skinning_transforms(body: BodyTrack) -> np.ndarray:
 
 
 def pose_body_vertices(body: BodyTrack) -> np.ndarray:
-    """The body posed per frame by linear blend skinning, thesis eq. 4.3.
+    """The body posed per frame by linear blend skinning, thesis eq. 4.3
+    (``inference.body.linear_blend_skinning`` with the track's dense weights).
 
     returns : (T, V, 3) float32, metres, Z-up
     """
     W = dense_skin_weights(body.skin_indices, body.skin_weights, body.num_bones)  # (V, J)
-    X = skinning_transforms(body)[:, :, :3, :]  # (T, J, 3, 4)
-    T, J = X.shape[:2]
-    V = W.shape[0]
-    v = body.rest_vertices
-    out = np.empty((T, V, 3), np.float32)
-    for start in range(0, T, _FRAME_BLOCK):  # bounded memory: V x block x 12 floats at a time
-        Xb = X[start:start + _FRAME_BLOCK]
-        B = Xb.shape[0]
-        # M[v, b] = sum_j W[v, j] X[b, j]   (one BLAS product over bones)
-        M = (W @ Xb.transpose(1, 0, 2, 3).reshape(J, B * 12)).reshape(V, B, 3, 4)
-        # posed[b, v] = M[v, b, :, :3] @ v_rest + M[v, b, :, 3]
-        out[start:start + B] = (np.einsum("vbij,vj->bvi", M[..., :3], v) + M[..., 3].transpose(1, 0, 2))
-    return out
+    X = skinning_transforms(body)  # (T, J, 4, 4)
+    return linear_blend_skinning(np.asarray(body.rest_vertices, np.float32)[None], W, X[None])[0]
