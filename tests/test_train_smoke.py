@@ -41,3 +41,14 @@ def test_smoke_train_export_run(tmp_path):
     assert lg.fit(p).shape == (1, lg.num_vertices, 3)
     delta, h = lg.wrinkles(p, np.zeros((1, 4, lg.descriptor_size), np.float32))
     assert delta.shape == (1, 4, lg.num_vertices, 3) and h.shape == (WRINKLE_SMOKE["layers"], 1, WRINKLE_SMOKE["hidden"])
+
+
+def test_training_cli_parses_into_the_config(tmp_path):
+    import torch
+
+    from training.train_fit import main
+
+    main(["--garment", GARMENT, "--smoke", "--lr", "2e-4", "--k-collision", "5000", "--out", str(tmp_path)])
+    record = torch.load(tmp_path / GARMENT / "fit_smoke.pt", weights_only=False)["record"]
+    assert record["smoke"] and record["config"]["lr"] == 2e-4 and record["config"]["k_collision"] == 5000.0
+    assert record["config"]["max_steps"] == 5  # the smoke overrides

@@ -15,8 +15,6 @@ Then ``python -m training.train_wrinkle`` and ``python -m training.export_onnx``
 """
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -29,6 +27,7 @@ from scipy.spatial import cKDTree
 from inference.body import BodyModel
 from inference.garment import GarmentCatalog
 from training.datasets import CACHE_DIR, REPO_ROOT, ShapeBank, harmonic_basis, sample_adult_phenotypes
+from training.cli import run as run_cli
 from training.manifest import git_commit
 from training.models import FitRegressor
 from training.physics import TRAIN_K_COLLISION, ClothGeometry, body_signed_distances, energy_terms
@@ -180,24 +179,7 @@ SMOKE = dict(minutes=0.25, max_steps=5, bank_shapes=6, eval_shapes=3, basis_size
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--garment", required=True)
-    p.add_argument("--minutes", type=float, default=FitConfig.minutes)
-    p.add_argument("--max-steps", type=int, default=FitConfig.max_steps)
-    p.add_argument("--threads", type=int, default=FitConfig.threads)
-    p.add_argument("--init", default=None, help="continue from this fit.pt (warm start)")
-    p.add_argument("--k-collision", type=float, default=FitConfig.k_collision, help="collision stiffness of the training loss, J/m^3")
-    p.add_argument("--lr", type=float, default=FitConfig.lr, help="Adam learning rate of the first phase")
-    p.add_argument("--lr-final", type=float, default=FitConfig.lr_final, help="Adam learning rate after lr_drop of the budget")
-    p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank (CI)")
-    p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads, init=args.init, k_collision=args.k_collision, lr=args.lr, lr_final=args.lr_final)
-    if args.smoke:
-        kw.update(SMOKE)
-    record = train_fit(FitConfig(**kw), smoke=args.smoke, out_dir=args.out)
-    log.info("metrics: %s", json.dumps(record["metrics"], indent=1))
+    run_cli(argv, __doc__.split("\n")[0], FitConfig, train_fit, SMOKE, "a few steps on a tiny bank (CI)", CHECKPOINT_DIR)
 
 
 if __name__ == "__main__":

@@ -25,8 +25,6 @@ Run (writes build/models/<garment>/wrinkle.pt with its config and metrics):
 """
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -49,6 +47,7 @@ from training.datasets import (
     pose_windows,
     sample_adult_phenotypes,
 )
+from training.cli import run as run_cli
 from training.manifest import git_commit
 from training.models import WrinkleGRU
 from training.physics import TRAIN_K_COLLISION, ClothGeometry, body_signed_distances, energy_terms, inertia_energy
@@ -316,25 +315,7 @@ SMOKE = dict(minutes=0.5, max_steps=3, bank_shapes=3, basis_size=8, hidden=16, l
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--garment", required=True)
-    p.add_argument("--minutes", type=float, default=WrinkleConfig.minutes)
-    p.add_argument("--max-steps", type=int, default=WrinkleConfig.max_steps)
-    p.add_argument("--threads", type=int, default=WrinkleConfig.threads)
-    p.add_argument("--init", default=None, help="continue from this wrinkle.pt (warm start)")
-    p.add_argument("--k-collision", type=float, default=WrinkleConfig.k_collision, help="collision stiffness of the training loss, J/m^3")
-    p.add_argument("--collision-cap", type=float, default=WrinkleConfig.collision_cap_m, help="collision penalty linear beyond this depth, m")
-    p.add_argument("--lr", type=float, default=WrinkleConfig.lr, help="Adam learning rate of the first phase")
-    p.add_argument("--lr-final", type=float, default=WrinkleConfig.lr_final, help="Adam learning rate after lr_drop of the budget")
-    p.add_argument("--smoke", action="store_true", help="a few steps on a tiny bank and a short clip (CI); needs fit_smoke.pt")
-    p.add_argument("--out", type=Path, default=CHECKPOINT_DIR)
-    args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    kw = dict(garment=args.garment, minutes=args.minutes, max_steps=args.max_steps, threads=args.threads, init=args.init, k_collision=args.k_collision, collision_cap_m=args.collision_cap, lr=args.lr, lr_final=args.lr_final)
-    if args.smoke:
-        kw.update(SMOKE)
-    record = train_wrinkle(WrinkleConfig(**kw), smoke=args.smoke, out_dir=args.out)
-    log.info("metrics: %s", json.dumps(record["metrics"], indent=1))
+    run_cli(argv, __doc__.split("\n")[0], WrinkleConfig, train_wrinkle, SMOKE, "a few steps on a tiny bank and a short clip (CI); needs fit_smoke.pt", CHECKPOINT_DIR)
 
 
 if __name__ == "__main__":

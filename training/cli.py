@@ -1,0 +1,47 @@
+"""The command line shared by the training scripts (``training.train_fit``, ``training.train_wrinkle``):
+one option per tunable field of the run's config dataclass, plus ``--smoke`` and ``--out``."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Callable
+
+log = logging.getLogger(__name__)
+
+# config field -> (option, help); an option is offered when the config has the field
+OPTIONS = {
+    "minutes": ("--minutes", "wall-clock training budget, minutes (bank building not counted)"),
+    "max_steps": ("--max-steps", "stop after this many steps"),
+    "threads": ("--threads", "torch intra-op threads"),
+    "init": ("--init", "continue from this checkpoint (warm start)"),
+    "k_collision": ("--k-collision", "collision stiffness of the training loss, J/m^3"),
+    "collision_cap_m": ("--collision-cap", "collision penalty linear beyond this depth, m"),
+    "lr": ("--lr", "Adam learning rate of the first phase"),
+    "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
+}
+
+
+def run(argv: list[str] | None, description: str, config_cls, train: Callable, smoke: dict, smoke_help: str, checkpoint_dir: Path) -> dict:
+    """Parse ``argv`` into ``config_cls`` (defaults from the dataclass, ``smoke`` overrides with
+    ``--smoke``), run ``train(config, smoke=..., out_dir=...)`` and log its metrics."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--garment", required=True)
+    defaults = {f.name: f.default for f in dataclasses.fields(config_cls)}
+    for name, (flag, help_text) in OPTIONS.items():
+        if name in defaults:
+            kind = str if name == "init" else int if name in ("max_steps", "threads") else float
+            p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")
+    p.add_argument("--smoke", action="store_true", help=smoke_help)
+    p.add_argument("--out", type=Path, default=checkpoint_dir)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    kw = {name: getattr(args, name) for name in OPTIONS if name in defaults}
+    kw["garment"] = args.garment
+    if args.smoke:
+        kw.update(smoke)
+    record = train(config_cls(**kw), smoke=args.smoke, out_dir=args.out)
+    log.info("metrics: %s", json.dumps(record["metrics"], indent=1))
+    return record
