@@ -151,7 +151,7 @@ def reference_errors(clip_id: str, garments: list[str], methods: dict[str, Drape
 
 def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None = None, bodies: dict[str, np.ndarray] = BODIES,
              methods: dict[str, DrapeOptions] = METHODS, models: LearnedModels | None = None) -> list[Row]:
-    """Every (body, garment, method): collisions before/after the guard, energies, reference error.
+    """Every (body, garment, method): collisions before/after the guard and energies per frame.
     models: the learned-model registry (default: the shipped ``assets/models``)."""
     body = BodyModel.load()
     catalog = GarmentCatalog.load()
