@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -135,12 +136,15 @@ def fit_garment(garment: GarmentAsset, hm08_vertices: np.ndarray, mode: FitMode,
 
 
 def garment_dynamics(unposed: np.ndarray, num_frames: int, mode: DynamicsMode = "none", phenotypes: np.ndarray | None = None,
-                     gamma: np.ndarray | None = None, learned: LearnedGarment | None = None) -> np.ndarray:
+                     gamma: np.ndarray | None = None, learned: LearnedGarment | None = None,
+                     segments: Sequence[int] | None = None) -> np.ndarray:
     """Per-frame unposed garment T_c(beta, gamma_1..t) = fit + R_L(beta, gamma_1..t) (eq. 4.2).
 
     unposed    : (B, V, 3) the fitted garment
     phenotypes : (B, 6) ; gamma : (B, T, F) motion descriptor ; learned : the garment's models
                  ('learned' only: the whole sequence in one ORT call, the GRU starting from h0 = 0)
+    segments   : frame counts of independent motions concatenated along T (cross-request
+                 batching): the GRU restarts from h0 = 0 at each one's first frame
     returns    : (B, T, V, 3) float32 metres ('none': the fit repeated, a broadcast view)
     """
     if mode == "learned":
@@ -148,7 +152,8 @@ def garment_dynamics(unposed: np.ndarray, num_frames: int, mode: DynamicsMode = 
             raise ValueError("dynamics 'learned' needs the garment's LearnedGarment, the phenotypes and gamma")
         if gamma.shape[:2] != (unposed.shape[0], num_frames):
             raise InputShapeError("gamma", f"({unposed.shape[0]}, {num_frames}, F)", gamma.shape)
-        delta, _ = learned.wrinkles(phenotypes, gamma)
+        bounds = np.cumsum([0, *(segments or [num_frames])])
+        delta = np.concatenate([learned.wrinkles(phenotypes, gamma[:, a:b])[0] for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
         return unposed[:, None] + delta
     return np.broadcast_to(unposed[:, None], (unposed.shape[0], num_frames) + unposed.shape[1:])
 
@@ -171,15 +176,21 @@ def drape(
     options: DrapeOptions = DrapeOptions(),
     neutral: BodyShape | None = None,
     models: LearnedModels | None = None,
+    segments: Sequence[int] | None = None,
 ) -> DrapeResult:
     """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
     (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none');
-    ``models`` the learned-model registry (default: ``inference.learned.default_models()``)."""
+    ``models`` the learned-model registry (default: ``inference.learned.default_models()``);
+    ``segments``: frame counts of independent motions concatenated in ``motion`` (cross-request
+    batching; default one motion): the motion descriptor and the wrinkle GRU restart at each."""
     timer = _Timer()
     if shape.rest_vertices.shape[0] != 1:
         raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
     if motion.rotations.shape[1] != body.num_bones:
         raise InputShapeError("motion.rotations", f"(T, {body.num_bones}, 3)", motion.rotations.shape)
+    segments = [motion.num_frames] if segments is None else [int(n) for n in segments]
+    if min(segments) < 1 or sum(segments) != motion.num_frames:
+        raise InputShapeError("segments", f"positive frame counts summing to {motion.num_frames}", tuple(segments))
 
     with timer("shape"):
         hm08 = body.hm08_vertices(shape)
@@ -204,15 +215,17 @@ def drape(
             field = "/options/fit" if options.fit == "learned" else "/options/dynamics"
             learned = [models.get(g.id, field) for g in garments]
     if options.dynamics == "learned":
-        with timer("descriptor"):
-            gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)
+        with timer("descriptor"):  # per segment: finite differences never straddle two motions
+            bounds = np.cumsum([0, *segments])
+            gamma = np.concatenate([motion_descriptor(motion.rotations[None, a:b], motion.translation[None, a:b], motion.fps)
+                                    for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
 
     unposed_fits, posed = [], []
     for g, lg in zip(garments, learned):
         with timer("fit"):
             unposed = fit_garment(g, hm08, options.fit, shape.phenotypes, lg)
         with timer("dynamics"):
-            unposed_t = garment_dynamics(unposed, motion.num_frames, options.dynamics, shape.phenotypes, gamma, lg)
+            unposed_t = garment_dynamics(unposed, motion.num_frames, options.dynamics, shape.phenotypes, gamma, lg, segments)
         with timer("skin"):
             posed.append(linear_blend_skinning(unposed_t, g.skin_weights, garment_transforms))
         unposed_fits.append(unposed)

@@ -1,13 +1,12 @@
 """Cross-request batching: which requests can share one pipeline call, and how their frames are
 merged and split again.
 
-The pipeline (inference/pipeline.py) dresses one body per call, and with ``dynamics='none'``
-every stage after the body shape is per frame (pose, skinning, guard). Requests for the same
-body, garments and options therefore run as one call on their motions concatenated along the
-frame axis: the per-request work (body shape, garment fit, the guard's candidate plan, ~0.3 s
-for a T-shirt on this CPU) is done once per batch instead of once per request. A stateful
-dynamics model (the wrinkle GRU) carries state across frames, so such requests get no merge
-key here: they would batch over the pipeline's batch axis once it takes B > 1 bodies.
+The pipeline (inference/pipeline.py) dresses one body per call, and every stage after the body
+shape is per frame (pose, skinning, guard) except the learned dynamics, whose motion descriptor
+and wrinkle GRU restart at each request's first frame (``drape(..., segments=...)``). Requests for
+the same body, garments and options therefore run as one call on their motions concatenated
+along the frame axis: the per-request work (body shape, garment fit, the guard's candidate plan,
+~0.3 s for a T-shirt on this CPU) is done once per batch instead of once per request.
 
 Float32 rounding differs with the frame count (BLAS blocking in the skinning einsum, ~1e-7 m);
 the collision guard's discrete candidate choice can turn that into a different push at a few
@@ -20,14 +19,16 @@ import numpy as np
 from inference.pipeline import DrapedGarment, DrapeResult, PoseSequence
 from service.schemas import DrapeRequest
 
-# dynamics modes whose pipeline stages are all per frame (safe to concatenate along time)
+# dynamics modes whose stages are all per frame (a job may run them in chunks of frames)
 PER_FRAME_DYNAMICS = frozenset({"none"})
+# dynamics modes that can run on concatenated motions (the GRU restarts per segment)
+MERGEABLE_DYNAMICS = frozenset({"none", "learned"})
 
 
 def merge_key(request: DrapeRequest) -> tuple | None:
     """Requests with equal keys may share one pipeline call; None: run alone."""
     o = request.options
-    if o.dynamics not in PER_FRAME_DYNAMICS:
+    if o.dynamics not in MERGEABLE_DYNAMICS:
         return None
     p = request.body.phenotypes
     return (

@@ -209,7 +209,8 @@ class Runtime:
         for members in groups.values():
             first = prepared[members[0]]
             motion = merge_motions([prepared[i].motion for i in members])
-            merged = drape(self.body, first.shape, motion, first.assets, first.options, neutral=self.neutral_shape)
+            merged = drape(self.body, first.shape, motion, first.assets, first.options, neutral=self.neutral_shape,
+                           segments=[prepared[i].motion.num_frames for i in members])
             for i, r in zip(members, split_result(merged, [prepared[i].motion for i in members])):
                 results[i] = r
         return results  # type: ignore[return-value]

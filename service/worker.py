@@ -4,7 +4,10 @@ the RQ worker of the Redis job backend (docker-compose's ``worker`` service).
 A pool worker loads the runtime once, then serves messages from its pipe:
   ("drape", [DrapeRequest, ...])            -> ("done", [DrapeOutput | ProblemDetail, ...])
   ("job", DrapeRequest, result_path)        -> ("progress", done, total)* then ("done", JobOutcome | ProblemDetail | None)
-the parent answers each progress message with True to cancel the job.
+the parent answers each progress message with True to cancel the job. ``None`` asks the worker to
+stop; when it arrives in place of a progress answer (the pool stopping while a job runs), the
+worker exits at once without reporting the job, whose lease then expires: it is run again after
+the restart, not lost (and no answer is left in the pipe to be misread as a message).
 """
 from __future__ import annotations
 
@@ -47,6 +50,10 @@ def execute_job(runtime, request, result_path: Path, progress) -> "JobOutcome | 
     return JobOutcome(headers=out.headers, result_bytes=len(out.payload), frames=int(out.headers.get("X-Frames", 0)), timings_ms=out.timings_ms)
 
 
+class _Stop(Exception):
+    """The parent asked the worker to stop while a job was running."""
+
+
 def serve_pipe(conn, settings) -> None:
     """Pool worker process main loop (spawned by service.pool.ProcessWorker)."""
     from service.errors import problem_from_exception
@@ -63,16 +70,25 @@ def serve_pipe(conn, settings) -> None:
             return
         if message is None:
             return
+        if not isinstance(message, tuple) or not message:
+            log.warning("worker: ignored an unexpected message %r", type(message).__name__)
+            continue
         kind = message[0]
         if kind == "drape":
             conn.send(("done", runtime.run_batch(message[1])))
         elif kind == "job":
             def progress(done: int, total: int) -> bool:
                 conn.send(("progress", done, total))
-                return bool(conn.recv())
+                reply = conn.recv()
+                if reply is None:  # the pool is stopping: leave the job to its lease
+                    raise _Stop
+                return bool(reply)
 
             try:
                 conn.send(("done", execute_job(runtime, message[1], message[2], progress)))
+            except _Stop:
+                log.info("worker: stopping during a job; it will be run again after the restart")
+                return
             except Exception as exc:  # noqa: BLE001 - the job's problem, the worker lives on
                 problem = problem_from_exception(exc)
                 if problem.status >= 500:

@@ -125,3 +125,25 @@ def test_pipeline_learned_stages(models):
         assert np.isfinite(a.vertices).all()
     with pytest.raises(MissingModelError):
         drape(body, shape, motion, garments, DrapeOptions(dynamics="learned", fit="retarget", **options), models=LearnedModels(MODELS_DIR / "nowhere"))
+
+
+def test_segments_restart_the_dynamics_per_motion(models):
+    """Cross-request batching: two motions concatenated with ``segments`` give each motion's own
+    result (descriptor and GRU restart at the second motion's first frame)."""
+    from inference.errors import InputShapeError
+
+    body = BodyModel.load()
+    shape = body.shape(NEUTRAL_PHENOTYPES[None])
+    walk, run = ClipLibrary().load("walk"), ClipLibrary().load("run")
+    (rw, tw), (rr, tr) = adapt_clip(walk, body, shape), adapt_clip(run, body, shape)
+    a, b = PoseSequence(rw[0, :9], tw[0, :9], 30.0), PoseSequence(rr[0, 5:12], tr[0, 5:12], 30.0)
+    both = PoseSequence(np.concatenate([a.rotations, b.rotations]), np.concatenate([a.translation, b.translation]), 30.0)
+    garments = [CATALOG.get("tshirt")]
+    options = DrapeOptions(guard=False)
+    solo = [drape(body, shape, m, garments, options, models=models).garments[0].vertices for m in (a, b)]
+    merged = drape(body, shape, both, garments, options, models=models, segments=[9, 7]).garments[0].vertices
+    np.testing.assert_allclose(merged, np.concatenate(solo), atol=1e-5)
+    unsegmented = drape(body, shape, both, garments, options, models=models).garments[0].vertices
+    assert np.abs(unsegmented[9:] - solo[1]).max() > 1e-4  # without segments the GRU state would leak
+    with pytest.raises(InputShapeError):
+        drape(body, shape, both, garments, options, models=models, segments=[9, 8])
