@@ -46,6 +46,14 @@ MODEL_VERSIONS = {
 }
 
 
+def used_model_versions(options) -> dict[str, str]:
+    """The versions of the models a request's options ran (its output metadata): body, fit,
+    dynamics and guard (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
+    fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}[options.fit]
+    dynamics = MODEL_VERSIONS["learned_dynamics"] if options.dynamics == "learned" else "none"
+    return {"body": MODEL_VERSIONS["body"], "fit": fit, "dynamics": dynamics, "guard": MODEL_VERSIONS["guard"] if options.guard else "none"}
+
+
 @dataclass(frozen=True)
 class RequestLimits:
     """Per-request limits: the synchronous route's, or the (larger) job route's."""
@@ -222,7 +230,7 @@ class Runtime:
         metadata = {
             "frames": motion.num_frames,
             "phenotypes": dict(zip(PHENOTYPE_LABELS, map(float, shape.phenotypes[0]))),
-            "model_versions": MODEL_VERSIONS, "options": o.model_dump(),
+            "model_versions": used_model_versions(o), "options": o.model_dump(),
         }
         tracks = [
             GarmentTrack(name=g.asset.id, vertices=g.vertices, faces=g.asset.faces, uvs=g.asset.uvs, face_uvs=g.asset.face_uvs,

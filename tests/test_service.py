@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 import pytest
@@ -155,6 +156,9 @@ def test_learned_models_are_selectable(client):
         assert r.status_code == 200, r.text
         return np.load(io.BytesIO(r.content), allow_pickle=False)["garment_0_vertices"]
 
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz", "options": {"include_body": False}})
+    meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
+    assert meta["model_versions"]["fit"].startswith("snug-fit") and meta["model_versions"]["dynamics"].startswith("snug-gru")
     base = verts({"fit": "retarget", "dynamics": "none"})
     learned = verts({"fit": "learned", "dynamics": "learned"})
     assert np.array_equal(verts({}), learned)  # the learned model is the default
