@@ -43,9 +43,10 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
 from inference.garment import GarmentAsset, GarmentCatalog
 from inference.learned import LearnedModels, default_models
 from inference.metrics import collision_rates
-from inference.motion.clips import ClipLibrary, adapt_clip
+from inference.motion.clips import ClipLibrary
 from inference.pipeline import DrapeOptions, PoseSequence, drape
 from training.datasets import REPO_ROOT, sample_adult_phenotypes
+from training.evaluate_collisions import shaped_motion
 from training.physics import ClothGeometry, energy_terms, inertia_energy
 
 log = logging.getLogger(__name__)
@@ -125,9 +126,7 @@ def reference_errors(clip_id: str, garments: list[str], methods: dict[str, Drape
     The methods run the clip from its frame 0 (the GRU's state builds up as at runtime)."""
     body = BodyModel.load()
     catalog = GarmentCatalog.load()
-    clip = ClipLibrary().load(clip_id)
-    shape = body.shape(NEUTRAL_PHENOTYPES[None])
-    rotations, translation = adapt_clip(clip, body, shape)
+    shape, full = shaped_motion(body, ClipLibrary().load(clip_id), NEUTRAL_PHENOTYPES)
     rows = []
     for gid in garments:
         path = REFERENCE_DIR / f"{gid}_{clip_id}.npz"
@@ -138,7 +137,7 @@ def reference_errors(clip_id: str, garments: list[str], methods: dict[str, Drape
             meta = json.loads(str(z["metadata"]))
         start = int(meta["start"])
         end = start + len(ref)
-        motion = PoseSequence(rotations[0, :end], translation[0, :end], clip.fps)
+        motion = PoseSequence(full.rotations[:end], full.translation[:end], full.fps)
         errors = {}
         for method, options in methods.items():
             ours = drape(body, shape, motion, [catalog.get(gid)], _with(options, guard=True), neutral=shape, models=models).garments[0].vertices[start:end]
@@ -159,9 +158,7 @@ def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None 
     neutral = body.shape(NEUTRAL_PHENOTYPES[None])
     rows = []
     for body_name, phenotypes in bodies.items():
-        shape = body.shape(phenotypes[None])
-        rotations, translation = adapt_clip(clip, body, shape)
-        motion = PoseSequence(rotations[0], translation[0], clip.fps)
+        shape, motion = shaped_motion(body, clip, phenotypes)
         _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, ::every], motion.translation[None, ::every])
         body_sub = body.skin(shape.rest_vertices, transforms)  # (1, T', Vb, 3)
         for gid in garments or catalog.ids():
@@ -242,12 +239,10 @@ def settle_check(garment: str = "dress", clip_id: str = "walk", move_frames: int
     body's frame (the body is still, so world = body frame)."""
     body = BodyModel.load()
     asset = GarmentCatalog.load().get(garment)
-    clip = ClipLibrary().load(clip_id)
-    shape = body.shape(NEUTRAL_PHENOTYPES[None])
-    rotations, translation = adapt_clip(clip, body, shape)
-    rot = np.concatenate([rotations[0, :move_frames], np.repeat(rotations[0, move_frames - 1 : move_frames], hold_frames, 0)])
-    trans = np.concatenate([translation[0, :move_frames], np.repeat(translation[0, move_frames - 1 : move_frames], hold_frames, 0)])
-    out = drape(body, shape, PoseSequence(rot, trans, clip.fps), [asset], _with(METHODS["learned"], guard=False), models=models).garments[0].vertices
+    shape, m = shaped_motion(body, ClipLibrary().load(clip_id), NEUTRAL_PHENOTYPES)
+    rot = np.concatenate([m.rotations[:move_frames], np.repeat(m.rotations[move_frames - 1 : move_frames], hold_frames, 0)])
+    trans = np.concatenate([m.translation[:move_frames], np.repeat(m.translation[move_frames - 1 : move_frames], hold_frames, 0)])
+    out = drape(body, shape, PoseSequence(rot, trans, m.fps), [asset], _with(METHODS["learned"], guard=False), models=models).garments[0].vertices
     z = asset.rest_vertices[:, 2]
     hem = z <= np.quantile(z, 0.05)
     speed = np.linalg.norm(np.diff(out[:, hem], axis=0), axis=-1).mean(axis=1) * 1000.0  # (T-1,) mm per frame

@@ -43,6 +43,13 @@ class Row:
     seconds: float
 
 
+def shaped_motion(body: BodyModel, clip, phenotypes: np.ndarray):
+    """The body shape of ``phenotypes`` (6,) and ``clip`` retargeted to it: (BodyShape, PoseSequence)."""
+    shape = body.shape(np.asarray(phenotypes, np.float32)[None])
+    rotations, translation = adapt_clip(clip, body, shape)
+    return shape, PoseSequence(rotations[0], translation[0], clip.fps)
+
+
 def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garments: list[str] | None = None,
              bodies: dict[str, np.ndarray] = BODIES) -> list[Row]:
     """Collision rates before/after the guard for every (body, garment) on ``clip_id``.
@@ -56,10 +63,9 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
     neutral = body.shape(NEUTRAL_PHENOTYPES[None])
     rows = []
     for body_name, phenotypes in bodies.items():
-        shape = body.shape(phenotypes[None])
-        rotations, translation = adapt_clip(clip, body, shape)
+        shape, full = shaped_motion(body, clip, phenotypes)
         # no dynamics: each frame is independent, so drape only the evaluated frames
-        motion = PoseSequence(rotations[0, ::every], translation[0, ::every], clip.fps / every)
+        motion = PoseSequence(full.rotations[::every], full.translation[::every], clip.fps / every)
         for gid in garments or catalog.ids():
             g = catalog.get(gid)
             t0 = time.perf_counter()
