@@ -17,8 +17,8 @@ Units: metres, seconds, radians; Z-up world axes (the glb writer converts to Y-u
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
