@@ -12,7 +12,7 @@ import pytest
 from training.evaluate_collisions import BODIES, evaluate
 
 # inside_pct_clean after the guard must stay below these (percent of garment vertices)
-BOUND_AFTER = {"neutral": 0.3, "min corner [0,.77,0,0,0,0]": 0.3, "max corner [1,1,1,1,1,1]": 2.5}
+BOUND_AFTER = {"neutral": 0.15, "min corner [0,.77,0,0,0,0]": 0.05, "max corner [1,1,1,1,1,1]": 1.5}
 
 
 @pytest.fixture(scope="module")
