@@ -405,8 +405,9 @@ class WorkerPool:
     def _observe(self, outcome) -> None:
         if isinstance(outcome, DrapeOutput):
             for stage, ms in outcome.timings_ms.items():
-                if stage in STAGE_MODELS:
-                    self.metrics.inference_ms.labels(stage, MODEL_VERSIONS[STAGE_MODELS[stage]]).observe(ms)
+                if stage in STAGE_MODELS:  # label: the model this request ran at that stage
+                    model = STAGE_MODELS[stage]
+                    self.metrics.inference_ms.labels(stage, outcome.model_versions.get(model, MODEL_VERSIONS[model])).observe(ms)
 
 
 def _settle(item: _Item, outcome) -> None:

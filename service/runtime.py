@@ -78,6 +78,7 @@ class DrapeOutput:
     payload: bytes
     headers: dict[str, str]
     timings_ms: dict[str, float] = field(default_factory=dict)
+    model_versions: dict[str, str] = field(default_factory=dict)  # ``used_model_versions`` of the request
 
 
 @dataclass
@@ -227,10 +228,11 @@ class Runtime:
         """Encode one request's result as glb or npz."""
         request, shape, motion, o = p.request, p.shape, p.motion, p.request.options
         t_export = time.perf_counter()
+        versions = used_model_versions(o)
         metadata = {
             "frames": motion.num_frames,
             "phenotypes": dict(zip(PHENOTYPE_LABELS, map(float, shape.phenotypes[0]))),
-            "model_versions": used_model_versions(o), "options": o.model_dump(),
+            "model_versions": versions, "options": o.model_dump(),
         }
         tracks = [
             GarmentTrack(name=g.asset.id, vertices=g.vertices, faces=g.asset.faces, uvs=g.asset.uvs, face_uvs=g.asset.face_uvs,
@@ -255,7 +257,7 @@ class Runtime:
             "X-Frames": str(motion.num_frames),
             "Server-Timing": ", ".join(f"{k};dur={v:.1f}" for k, v in timings.items()),
         }
-        return DrapeOutput(payload=payload, headers=headers, timings_ms=timings)
+        return DrapeOutput(payload=payload, headers=headers, timings_ms=timings, model_versions=versions)
 
     def run_drape(self, request: DrapeRequest) -> DrapeOutput:
         """One request, synchronously (raises the runtime's input errors)."""

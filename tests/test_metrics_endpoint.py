@@ -42,7 +42,10 @@ def test_metrics_cover_requests_latency_queue_batches_inference_jobs(metrics_cli
     assert ("tryon_queue_depth", ()) in m
     assert m[("tryon_batch_size_count", ())] >= 1
     assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["guard"]), ("stage", "guard")))] >= 1
-    assert m[("tryon_inference_ms_count", (("model", "mhclo-retarget"), ("stage", "fit")))] >= 1
+    # the default request runs the learned models: the stage label names them
+    assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["learned_fit"]), ("stage", "fit")))] >= 1
+    assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["learned_dynamics"]), ("stage", "dynamics")))] >= 1
+    assert ("tryon_inference_ms_count", (("model", MODEL_VERSIONS["fit"]), ("stage", "fit"))) not in m
     assert {("tryon_jobs", (("state", s),)) for s in ("queued", "running", "succeeded", "failed", "cancelled")} <= set(m)
     assert m[("tryon_workers_alive", ())] == 1
 
