@@ -39,14 +39,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
-from inference.garment import GarmentAsset, GarmentCatalog
+from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+from inference.garment import GarmentCatalog
 from inference.learned import LearnedModels, default_models
 from inference.metrics import collision_rates
 from inference.motion.clips import ClipLibrary
 from inference.pipeline import DrapeOptions, PoseSequence, drape
 from training.datasets import REPO_ROOT, sample_adult_phenotypes
-from training.evaluate_collisions import shaped_motion
+from training.evaluate_collisions import Inputs, shaped_motion
 from training.physics import ClothGeometry, energy_terms, inertia_energy
 
 log = logging.getLogger(__name__)
@@ -152,10 +152,8 @@ def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None 
              methods: dict[str, DrapeOptions] = METHODS, models: LearnedModels | None = None) -> list[Row]:
     """Every (body, garment, method): collisions before/after the guard and energies per frame.
     models: the learned-model registry (default: the shipped ``assets/models``)."""
-    body = BodyModel.load()
-    catalog = GarmentCatalog.load()
-    clip = ClipLibrary().load(clip_id)
-    neutral = body.shape(NEUTRAL_PHENOTYPES[None])
+    inputs = Inputs.load(clip_id)
+    body, catalog, clip, neutral = inputs.body, inputs.catalog, inputs.clip, inputs.neutral
     rows = []
     for body_name, phenotypes in bodies.items():
         shape, motion = shaped_motion(body, clip, phenotypes)

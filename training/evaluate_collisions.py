@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
 from inference.garment import GarmentCatalog
 from inference.metrics import collision_rates
-from inference.motion.clips import ClipLibrary, adapt_clip
+from inference.motion.clips import Clip, ClipLibrary, adapt_clip
 from inference.pipeline import DrapeOptions, PoseSequence, drape
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,21 @@ def shaped_motion(body: BodyModel, clip, phenotypes: np.ndarray):
     return shape, PoseSequence(rotations[0], translation[0], clip.fps)
 
 
+@dataclass
+class Inputs:
+    """What every evaluation loads: the body model, the catalog, the clip and the neutral shape."""
+
+    body: BodyModel
+    catalog: GarmentCatalog
+    clip: Clip
+    neutral: BodyShape
+
+    @classmethod
+    def load(cls, clip_id: str) -> "Inputs":
+        body = BodyModel.load()
+        return cls(body, GarmentCatalog.load(), ClipLibrary().load(clip_id), body.shape(NEUTRAL_PHENOTYPES[None]))
+
+
 def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garments: list[str] | None = None,
              bodies: dict[str, np.ndarray] = BODIES) -> list[Row]:
     """Collision rates before/after the guard for every (body, garment) on ``clip_id``.
@@ -57,10 +72,8 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
     every : evaluate every n-th frame of the 30 fps clip (fit baselines without dynamics: frames
             are independent, so only those frames are draped)
     """
-    body = BodyModel.load()
-    catalog = GarmentCatalog.load()
-    clip = ClipLibrary().load(clip_id)
-    neutral = body.shape(NEUTRAL_PHENOTYPES[None])
+    inputs = Inputs.load(clip_id)
+    body, catalog, clip, neutral = inputs.body, inputs.catalog, inputs.clip, inputs.neutral
     rows = []
     for body_name, phenotypes in bodies.items():
         shape, full = shaped_motion(body, clip, phenotypes)
