@@ -17,6 +17,10 @@ Cost: the closest collider vertex is searched among ``k`` candidates per garment
 once per request by a KD-tree in the rest pose (``GuardPlan``); a frame then costs a few
 gathers over (N, k) and normals for the plan's collider vertices only. Flat 1-D ``np.take``
 on coordinate planes (structure of arrays) is several times faster than gathering (., 3) rows.
+Points that another body part can reach when a joint bends (skin-aware plans) also get their
+posed nearest collider vertices in every frame, from a KD-tree over the collider vertices near
+them in the rest pose plus, thinned, the farther ones a limb can bring in (a forearm against
+the back); this per-frame search is most of the guard's cost.
 
 Self-intersecting bodies. Under LBS the posed body intersects itself (an upper arm sunk into
 the torso); a garment vertex squeezed there cannot be outside both parts. The guard does not
