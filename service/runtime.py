@@ -42,7 +42,7 @@ MODEL_VERSIONS = {
     "dynamics": "none",
     "learned_fit": "snug-fit-v2",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v2",  # options.dynamics = 'learned', the default (wrinkle.onnx)
-    "guard": "plane-push-v2",
+    "guard": "plane-push-v3",  # v3: per-frame candidates from farther limbs
 }
 
 
