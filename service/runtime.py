@@ -40,8 +40,8 @@ MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
     "dynamics": "none",
-    "learned_fit": "snug-fit-v2",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
-    "learned_dynamics": "snug-gru-v2",  # options.dynamics = 'learned', the default (wrinkle.onnx)
+    "learned_fit": "snug-fit-v3",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
+    "learned_dynamics": "snug-gru-v3",  # options.dynamics = 'learned', the default (wrinkle.onnx)
     "guard": "plane-push-v3",  # v3: per-frame candidates from farther limbs
 }
 
