@@ -79,8 +79,9 @@ DYNAMIC_RISK_M = 0.30
 DYNAMIC_REGION_M = 0.05
 # ... and among the farther collider vertices within DYNAMIC_REACH_M (a forearm that swings
 # against the back, a hand against the thigh), thinned to one per DYNAMIC_VOXEL_M cell. Measured
-# on 01_01 (learned default, every 16th frame, clean inside % after the guard): neutral T-shirt
-# 0.192 -> 0.060, heaviest adult 1.12 -> 0.61, for +1.4-2 ms per garment-frame.
+# on 01_01 (learned default, v2 models, every 16th frame, clean inside % after the guard):
+# neutral T-shirt 0.192 -> 0.060, heaviest adult 1.12 -> 0.61, for +1.4-2 ms per garment-frame
+# (docs/benchmarks.md, Serving: 3 cm cells keep most of that for a third of the cost).
 DYNAMIC_REACH_M = 0.30
 DYNAMIC_VOXEL_M = 0.02
 # Per-frame nearest candidates per dynamic point.

@@ -57,8 +57,9 @@ class FitConfig:
     lr_final: float = 3e-5  # Adam after ``lr_drop`` of the budget (SNUG §5.3.1: 1e-3 then 1e-4)
     lr_drop: float = 0.7  # fraction of the budget (time or steps) after which lr = lr_final
     grad_clip: float = 1.0  # global gradient-norm clip against deep-collision batches (cubic penalty,
-    # k = 1e5), as in the GRU. It does not make lr 1e-3 stable: with and without it the T-shirt and
-    # dress fits diverged after 200-1400 steps at 1e-3 (measured); 3e-4 is the largest rate used.
+    # k = 1e5), as in the GRU. It does not make a continued training stable: with and without it,
+    # continuing a trained T-shirt or dress fit at 1e-3 or 3e-4 diverged after 200-1400 steps
+    # (measured); the v3 T-shirt and jacket fits trained from scratch at 1e-3 -> 1e-4 in 10 min.
     fresh_candidates: bool = True  # re-select the collision candidates at the current prediction every step
     init: str | None = None  # warm start: a fit.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
