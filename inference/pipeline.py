@@ -1,16 +1,18 @@
-"""The drape pipeline: shape -> fit -> dynamics -> skin -> guard -> layers -> export.
+"""The drape pipeline: shape -> arms -> fit -> dynamics -> skin -> guard -> layers -> export.
 
 Thesis eq. 4.2-4.3: T_c(beta, theta) = T_bar_c + R_G(beta) + R_L(beta, gamma_1..t), then
 M_c = W(T_c, beta, theta, W_c), then the collision post-process of ch. 4.2.1. Each stage is a
 function over batched float32 arrays. The learned models (``inference.learned``: fit MLP R_G
-and wrinkle GRU R_L, ONNX, trained self-supervised with the SNUG losses) are selectable; the
-retarget baseline is the default (see DrapeOptions):
+and wrinkle GRU R_L, ONNX, trained self-supervised with the SNUG losses) are the default; the
+baselines stay selectable (see DrapeOptions):
 
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
 - fit 'none'      : the neutral template, plain LBS
 - dynamics 'learned': + R_L(beta, gamma_1..t) per frame, gamma = motion_descriptor (one ORT call)
 - dynamics 'none'   : no per-frame displacement
+- arms (``lift_arms``): the upper arms are abducted out of the torso where the body shape sinks
+  them in (``inference.motion.self_contact``); the body and the garments follow that pose
 
 Units: metres, seconds, radians; Z-up world axes (the glb writer converts to Y-up).
 """
@@ -29,6 +31,7 @@ from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
+from inference.motion.self_contact import lift_arms
 
 FitMode = Literal["learned", "retarget", "none"]
 DynamicsMode = Literal["learned", "none"]
@@ -42,7 +45,8 @@ class DrapeOptions:
     The learned modes need the garment's models (``MissingModelError`` otherwise).
     Default: the learned model, thesis eq. 4.2 (retarget + R_G + R_L, then LBS); the baselines
     stay selectable for comparison (docs/evaluation.md compares the three).
-    margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost."""
+    margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost.
+    lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``)."""
 
     fit: FitMode = "learned"
     dynamics: DynamicsMode = "learned"
@@ -50,6 +54,7 @@ class DrapeOptions:
     margin_m: float = 0.002
     layer_gap_m: float = 0.003
     include_body: bool = True
+    lift_arms: bool = True
 
 
 @dataclass(frozen=True)
@@ -194,6 +199,10 @@ def drape(
 
     with timer("shape"):
         hm08 = body.hm08_vertices(shape)
+    if options.lift_arms:
+        with timer("arms"):
+            lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation, segments)
+            motion = PoseSequence(lifted, motion.translation, motion.fps)
     with timer("pose"):
         bone_poses, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
     body_vertices = None  # the posed body, needed by the guard (exporters pose it themselves)

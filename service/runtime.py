@@ -12,7 +12,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -25,6 +25,7 @@ from inference.motion.bvh import parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion
 from inference.motion.retarget import retarget
+from inference.motion.self_contact import lift_arms
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape
 from service.batching import PER_FRAME_DYNAMICS, concatenate_results, merge_key, merge_motions, split_result
 from service.config import Settings
@@ -204,7 +205,8 @@ class Runtime:
             raise InputValueError(
                 "/body", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
             )
-        options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body)
+        options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body,
+                               lift_arms=o.lift_arms)
         return PreparedDrape(request, shape, motion, assets, options, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:
@@ -298,6 +300,10 @@ class Runtime:
         total = p.motion.num_frames
         # chunks only where every stage is per frame: a stateful dynamics model runs in one call
         chunk = self.settings.job_chunk_frames if request.options.dynamics in PER_FRAME_DYNAMICS else total
+        if chunk < total and p.options.lift_arms:
+            # the arm correction smooths over neighbouring frames: run it once on the whole motion
+            lifted, _ = lift_arms(self.body, p.shape, p.motion.rotations, p.motion.translation)
+            p = replace(p, motion=PoseSequence(lifted, p.motion.translation, p.motion.fps), options=replace(p.options, lift_arms=False))
         if progress is not None and progress(0, total):
             return None
         parts = []

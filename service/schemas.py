@@ -89,6 +89,11 @@ class DrapeOptions(_Strict):
     guard: bool = Field(True, description="push garment vertices out of the body after skinning")
     margin_m: float = Field(0.002, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")
     layer_gap_m: float = Field(0.003, ge=0.0, le=0.02, allow_inf_nan=False, description="extra margin per garment layer, metres")
+    lift_arms: bool = Field(
+        True,
+        description="abduct the upper arms about the shoulder, per frame, where the body shape sinks them into the torso "
+        "(a clip retargeted onto a heavier body); the returned body follows the corrected pose. false: the pose as given",
+    )
 
 
 class DrapeRequest(_Strict):

@@ -60,9 +60,10 @@ BODIES: dict[str, np.ndarray] = {
     "[1,1,1,0,0,1]": np.array([1.0, 1.0, 1.0, 0.0, 0.0, 1.0], np.float32),
 }
 METHODS: dict[str, DrapeOptions] = {
-    "learned": DrapeOptions(fit="learned", dynamics="learned"),
-    "retarget": DrapeOptions(fit="retarget", dynamics="none"),
-    "lbs": DrapeOptions(fit="none", dynamics="none"),
+    # the motions come with the arms already lifted (``shaped_motion``), as the service runs them
+    "learned": DrapeOptions(fit="learned", dynamics="learned", lift_arms=False),
+    "retarget": DrapeOptions(fit="retarget", dynamics="none", lift_arms=False),
+    "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
 }
 ENERGY_TERMS = ("strain", "bending", "gravity", "inertia")
 STATIC_SEED = 12345  # held-out shapes of the static reference (the fit trains on seed 0, evaluates on seed 1)
@@ -126,7 +127,8 @@ def reference_errors(clip_id: str, garments: list[str], methods: dict[str, Drape
     The methods run the clip from its frame 0 (the GRU's state builds up as at runtime)."""
     body = BodyModel.load()
     catalog = GarmentCatalog.load()
-    shape, full = shaped_motion(body, ClipLibrary().load(clip_id), NEUTRAL_PHENOTYPES)
+    # the reference was simulated on the clip as retargeted (arms not lifted)
+    shape, full = shaped_motion(body, ClipLibrary().load(clip_id), NEUTRAL_PHENOTYPES, lift=False)
     rows = []
     for gid in garments:
         path = REFERENCE_DIR / f"{gid}_{clip_id}.npz"

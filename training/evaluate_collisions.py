@@ -3,7 +3,7 @@
 Run: ``python -m training.evaluate_collisions [--clip 01_01] [--fit retarget] [--every 1]``
 
 For each body (neutral and the two extreme adult corners) and each catalog garment, drapes the
-clip through ``inference.pipeline.drape`` and measures with the exact inside test of
+clip (arms lifted out of the torso, as the service does by default) through ``inference.pipeline.drape`` and measures with the exact inside test of
 ``inference.metrics`` (ray-crossing winding number), before and after the collision guard:
 ``inside_pct`` (all vertices) and ``inside_pct_clean`` (vertices farther than 2 cm from a skin
 vertex that is itself inside another body part: LBS self-intersection, which no garment vertex
@@ -22,6 +22,7 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
 from inference.garment import GarmentCatalog
 from inference.metrics import collision_rates
 from inference.motion.clips import Clip, ClipLibrary, adapt_clip
+from inference.motion.self_contact import lift_arms
 from inference.pipeline import DrapeOptions, PoseSequence, drape
 
 log = logging.getLogger(__name__)
@@ -43,11 +44,15 @@ class Row:
     seconds: float
 
 
-def shaped_motion(body: BodyModel, clip, phenotypes: np.ndarray):
-    """The body shape of ``phenotypes`` (6,) and ``clip`` retargeted to it: (BodyShape, PoseSequence)."""
+def shaped_motion(body: BodyModel, clip, phenotypes: np.ndarray, lift: bool = True):
+    """The body shape of ``phenotypes`` (6,) and ``clip`` retargeted to it: (BodyShape, PoseSequence).
+
+    lift: with the arms lifted out of the torso over the whole clip, as the service runs it
+    (``inference.motion.self_contact``); drape it with ``lift_arms=False`` (already applied)."""
     shape = body.shape(np.asarray(phenotypes, np.float32)[None])
     rotations, translation = adapt_clip(clip, body, shape)
-    return shape, PoseSequence(rotations[0], translation[0], clip.fps)
+    rotations = lift_arms(body, shape, rotations[0], translation[0])[0] if lift else rotations[0]
+    return shape, PoseSequence(rotations, translation[0], clip.fps)
 
 
 @dataclass
@@ -82,8 +87,8 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
         for gid in garments or catalog.ids():
             g = catalog.get(gid)
             t0 = time.perf_counter()
-            raw = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=False), neutral=neutral)
-            guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=True), neutral=neutral)
+            raw = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=False, lift_arms=False), neutral=neutral)
+            guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=True, lift_arms=False), neutral=neutral)
             _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
             body_verts = body.skin(shape.rest_vertices, transforms)
             before = collision_rates(raw.garments[0].vertices[None], body_verts, body.faces)

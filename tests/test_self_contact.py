@@ -1,0 +1,82 @@
+"""The arm correction (inference.motion.self_contact): lifts the arms of heavy bodies out of the
+torso, leaves slim bodies and every other bone alone, respects motion segments."""
+import numpy as np
+import pytest
+
+from inference.body import BodyModel
+from inference.metrics import self_intersecting_vertices
+from inference.motion.clips import ClipLibrary, adapt_clip
+from inference.motion.self_contact import ARM_CHAINS, lift_arms
+
+HEAVY = np.ones(6, np.float32)
+LIGHT = np.array([0.0, 0.77, 0.0, 0.0, 0.0, 0.0], np.float32)
+
+
+@pytest.fixture(scope="module")
+def body():
+    return BodyModel.load()
+
+
+def _motion(body, phenotypes, frames=48):
+    shape = body.shape(phenotypes[None])
+    rot, trans = adapt_clip(ClipLibrary().load("walk"), body, shape)
+    return shape, rot[0, :frames], trans[0, :frames]
+
+
+def _self_intersections(body, shape, rot, trans):
+    _, transforms = body.pose(shape.rest_bone_poses, rot[None], trans[None])
+    verts = body.skin(shape.rest_vertices, transforms)[0]
+    return self_intersecting_vertices(verts, body.faces).sum(1)
+
+
+def test_heavy_body_arms_leave_the_torso(body):
+    shape, rot, trans = _motion(body, HEAVY)
+    lifted, angles = lift_arms(body, shape, rot, trans)
+    before = _self_intersections(body, shape, rot[::4], trans[::4])
+    after = _self_intersections(body, shape, lifted[::4], trans[::4])
+    assert angles.max() > np.radians(5)  # the heavy body's arms hang into its torso on this walk
+    assert after.mean() < 0.5 * before.mean(), (before.mean(), after.mean())
+    assert np.all(angles >= 0) and angles.max() <= 0.6 + 1e-6
+
+
+def test_only_the_upper_arms_rotate(body):
+    shape, rot, trans = _motion(body, HEAVY, 24)
+    lifted, _ = lift_arms(body, shape, rot, trans)
+    arms = [body.bone_names.index(chain[0]) for chain in ARM_CHAINS]
+    others = np.setdiff1d(np.arange(body.num_bones), arms)
+    np.testing.assert_array_equal(lifted[:, others], rot[:, others])
+    assert np.abs(lifted[:, arms] - rot[:, arms]).max() > 1e-3
+    assert np.isfinite(lifted).all() and lifted.dtype == np.float32
+
+
+def test_slim_body_is_left_alone(body):
+    shape, rot, trans = _motion(body, LIGHT, 24)
+    lifted, angles = lift_arms(body, shape, rot, trans)
+    assert angles.max() == 0.0
+    np.testing.assert_array_equal(lifted, rot)
+
+
+def test_segments_are_independent(body):
+    # two motions concatenated (cross-request batching) give each one's own correction
+    shape, rot, trans = _motion(body, HEAVY, 40)
+    a, _ = lift_arms(body, shape, rot[:17], trans[:17])
+    b, _ = lift_arms(body, shape, rot[17:], trans[17:])
+    both, _ = lift_arms(body, shape, rot, trans, segments=[17, 23])
+    np.testing.assert_allclose(both, np.concatenate([a, b]), atol=1e-6)
+
+
+def test_pipeline_poses_the_lifted_arms(body):
+    from inference.garment import GarmentCatalog
+    from inference.pipeline import DrapeOptions, PoseSequence, drape
+
+    shape, rot, trans = _motion(body, HEAVY, 12)
+    motion = PoseSequence(rot, trans, 30.0)
+    tshirt = [GarmentCatalog.load().get("tshirt")]
+    base = DrapeOptions(fit="retarget", dynamics="none", guard=False)
+    off = drape(body, shape, motion, tshirt, DrapeOptions(fit="retarget", dynamics="none", guard=False, lift_arms=False))
+    on = drape(body, shape, motion, tshirt, base)
+    lifted, _ = lift_arms(body, shape, rot, trans)
+    expected, _ = body.pose(shape.rest_bone_poses, lifted[None], trans[None])
+    np.testing.assert_allclose(on.bone_poses, expected[0], atol=1e-6)
+    assert np.abs(on.bone_poses - off.bone_poses).max() > 1e-3
+    assert "arms" in on.timings_ms and "arms" not in off.timings_ms
