@@ -84,17 +84,67 @@ def _skin(body: BodyModel, ids: np.ndarray, rest: np.ndarray, normals: np.ndarra
     return p, n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
 
 
+class ArmLifter:
+    """The per-body set-up of ``lift_arms`` (rest normals, thinned torso and arm points), reusable
+    for many motions of one body (training draws many windows per bank shape)."""
+
+    def __init__(self, body: BodyModel, shape: BodyShape):
+        from inference.guard import vertex_normals  # the guard's area-weighted normals
+
+        self.body, self.shape = body, shape
+        self.rest = shape.rest_vertices[0]
+        self.rest_normals = vertex_normals(self.rest, body.faces)
+        self.torso = _members(body, TORSO_BONES, self.rest, TORSO_VOXEL_M)
+        self.arms = [(body.bone_names.index(chain[0]), _members(body, chain, self.rest, ARM_VOXEL_M)) for chain in ARM_CHAINS]
+
+    def lift(
+        self,
+        rotations: np.ndarray,
+        translation: np.ndarray,
+        segments: Sequence[int] | None = None,
+        *,
+        margin_m: float = DEFAULT_MARGIN_M,
+        reach_m: float = DEFAULT_REACH_M,
+        tangent_m: float = DEFAULT_TANGENT_M,
+        iterations: int = 3,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``lift_arms`` for this body (same arguments and results)."""
+        body, shape, rest, rest_n = self.body, self.shape, self.rest, self.rest_normals
+        rotations = np.array(rotations, np.float32)
+        translation = np.asarray(translation, np.float32)
+        T = rotations.shape[0]
+        segments = [T] if segments is None else [int(n) for n in segments]
+        W, transforms = body.pose(shape.rest_bone_poses, rotations[None], translation[None])
+        tp, tn = _skin(body, self.torso, rest, rest_n, transforms[0])  # the torso does not move with the arms
+        trees = [cKDTree(tp[t]) for t in range(T)]
+        angles = np.zeros((T, 2), np.float32)
+        for side, (bone, arm) in enumerate(self.arms):
+            active = np.arange(T)
+            for _ in range(max(int(iterations), 1)):
+                ap, _ = _skin(body, arm, rest, rest_n, transforms[0, active])
+                step, axes = _steps(trees, tp, tn, ap, W[0, active, bone, :3, 3], active, T, margin_m, reach_m, tangent_m)
+                if not step.any():
+                    break
+                src = _window_argmax(step, segments)  # a frame never gets less than its neighbours need
+                axes = np.where((step > 0)[:, None], axes, axes[src])
+                step = np.minimum(step[src], _TOTAL_CAP - angles[:, side])
+                active = np.flatnonzero(step > 0)
+                if not len(active):
+                    break
+                angles[active, side] += step[active]
+                rotations[active, bone] = _rotate_bone(body, shape, W[0, active], rotations[active, bone], bone, axes[active], step[active])
+                Wa, Ta = body.pose(shape.rest_bone_poses, rotations[None, active], translation[None, active])
+                W[0, active], transforms[0, active] = Wa[0], Ta[0]
+        return rotations, angles
+
+
 def lift_arms(
     body: BodyModel,
     shape: BodyShape,
     rotations: np.ndarray,
     translation: np.ndarray,
     segments: Sequence[int] | None = None,
-    *,
-    margin_m: float = DEFAULT_MARGIN_M,
-    reach_m: float = DEFAULT_REACH_M,
-    tangent_m: float = DEFAULT_TANGENT_M,
-    iterations: int = 3,
+    **kwargs,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Abduct the upper arms out of the torso (module docstring).
 
@@ -103,60 +153,37 @@ def lift_arms(
     translation : (T, 3) metres
     segments    : frame counts of independent motions concatenated along T (smoothing stays
                   inside each); default one motion
+    kwargs      : margin_m, reach_m, tangent_m (metres), iterations (``ArmLifter.lift``)
     returns     : corrected rotations (T, J, 3) float32 and the abduction (T, 2) radians of the
                   (left, right) arm
     """
-    from inference.guard import vertex_normals  # the guard's area-weighted normals
+    return ArmLifter(body, shape).lift(rotations, translation, segments, **kwargs)
 
-    rotations = np.array(rotations, np.float32)
-    translation = np.asarray(translation, np.float32)
-    T = rotations.shape[0]
-    segments = [T] if segments is None else [int(n) for n in segments]
-    rest = shape.rest_vertices[0]
-    rest_n = vertex_normals(rest, body.faces)
-    torso = _members(body, TORSO_BONES, rest, TORSO_VOXEL_M)
-    W, transforms = body.pose(shape.rest_bone_poses, rotations[None], translation[None])
-    tp, tn = _skin(body, torso, rest, rest_n, transforms[0])  # the torso does not move with the arms
-    trees = [cKDTree(tp[t]) for t in range(T)]
-    angles = np.zeros((T, 2), np.float32)
-    for side, chain in enumerate(ARM_CHAINS):
-        bone = body.bone_names.index(chain[0])
-        arm = _members(body, chain, rest, ARM_VOXEL_M)
-        active = np.arange(T)
-        for _ in range(max(int(iterations), 1)):
-            ap, _ = _skin(body, arm, rest, rest_n, transforms[0, active])
-            step, axes = np.zeros(T), np.zeros((T, 3))
-            dist = np.empty(ap.shape[:2])
-            near = np.empty(ap.shape[:2], np.intp)
-            for i, t in enumerate(active):  # a KD-tree query per frame (C); the rest is vectorised
-                dist[i], near[i] = trees[t].query(ap[i], k=1, distance_upper_bound=reach_m)
-            ok = np.isfinite(dist)
-            near = np.where(ok, near, 0)
-            c, n = tp[active[:, None], near], tn[active[:, None], near]  # (A, n_arm, 3)
-            depth = -np.einsum("tic,tic->ti", ap - c, n)
-            # the tangent plane judges only points that project near c (not across a crease)
-            depth = np.where(ok & (np.where(ok, dist, 0.0) ** 2 - depth**2 < tangent_m**2), depth, 0.0)
-            dirn = np.einsum("ti,tic->tc", np.maximum(depth, 0.0), n)
-            dirn /= np.maximum(np.linalg.norm(dirn, axis=-1, keepdims=True), 1e-12)
-            deepest = np.argmax(depth, axis=1)
-            k = np.cross(ap[np.arange(len(active)), deepest] - W[0, active, bone, :3, 3], dirn)
-            lever = np.linalg.norm(k, axis=-1)
-            need = (depth.max(axis=1) > 0) & (lever > 1e-3)
-            step[active[need]] = np.minimum((depth.max(axis=1)[need] + margin_m) / lever[need], _STEP_CAP)
-            axes[active[need]] = k[need] / lever[need, None]
-            if not step.any():
-                break
-            src = _window_argmax(step, segments)  # a frame never gets less than its neighbours need
-            axes = np.where((step > 0)[:, None], axes, axes[src])
-            step = np.minimum(step[src], _TOTAL_CAP - angles[:, side])
-            active = np.flatnonzero(step > 0)
-            if not len(active):
-                break
-            angles[active, side] += step[active]
-            rotations[active, bone] = _rotate_bone(body, shape, W[0, active], rotations[active, bone], bone, axes[active], step[active])
-            Wa, Ta = body.pose(shape.rest_bone_poses, rotations[None, active], translation[None, active])
-            W[0, active], transforms[0, active] = Wa[0], Ta[0]
-    return rotations, angles
+
+def _steps(trees, tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tuple[np.ndarray, np.ndarray]:
+    """One abduction step per frame (module docstring): angle (T,) radians (0 where the arm is
+    clear) and unit axis (T, 3), for the arm points ``ap`` (A, n, 3) of the ``active`` frames
+    (A,), their shoulder joints (A, 3), the torso points/normals tp, tn (T, m, 3) and trees."""
+    step, axes = np.zeros(T), np.zeros((T, 3))
+    dist = np.empty(ap.shape[:2])
+    near = np.empty(ap.shape[:2], np.intp)
+    for i, t in enumerate(active):  # a KD-tree query per frame (C); the rest is vectorised
+        dist[i], near[i] = trees[t].query(ap[i], k=1, distance_upper_bound=reach_m)
+    ok = np.isfinite(dist)
+    near = np.where(ok, near, 0)
+    c, n = tp[active[:, None], near], tn[active[:, None], near]  # (A, n, 3)
+    depth = -np.einsum("tic,tic->ti", ap - c, n)
+    # the tangent plane judges only points that project near c (not across a crease)
+    depth = np.where(ok & (np.where(ok, dist, 0.0) ** 2 - depth**2 < tangent_m**2), depth, 0.0)
+    dirn = np.einsum("ti,tic->tc", np.maximum(depth, 0.0), n)
+    dirn /= np.maximum(np.linalg.norm(dirn, axis=-1, keepdims=True), 1e-12)
+    deepest = np.argmax(depth, axis=1)
+    k = np.cross(ap[np.arange(len(active)), deepest] - shoulder, dirn)
+    lever = np.linalg.norm(k, axis=-1)
+    need = (depth.max(axis=1) > 0) & (lever > 1e-3)
+    step[active[need]] = np.minimum((depth.max(axis=1)[need] + margin_m) / lever[need], _STEP_CAP)
+    axes[active[need]] = k[need] / lever[need, None]
+    return step, axes
 
 
 def _window_argmax(x: np.ndarray, segments: Sequence[int]) -> np.ndarray:
