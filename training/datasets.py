@@ -25,6 +25,7 @@ from inference.garment import GarmentAsset
 from inference.guard import vertex_normals
 from inference.motion.asfamc import load_asf_amc
 from inference.motion.descriptor import DESCRIPTOR_LAYOUT, motion_descriptor
+from inference.motion.self_contact import ArmLifter
 from inference.motion.retarget import ground, retarget, target_leg_length
 from training.models import phenotype_box
 from training.physics import body_candidates
@@ -262,16 +263,64 @@ def scale_motion(translation: np.ndarray, gamma: np.ndarray, ratio: np.ndarray) 
     return translation * r, g
 
 
-def pose_windows(body: BodyModel, bank: ShapeBank, shape_idx: np.ndarray, motions: MotionBank, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+# Clip frames on each side of a window that its arm correction sees (the correction widens each
+# frame's angle over its neighbours, inference.motion.self_contact.SMOOTH_FRAMES).
+LIFT_CONTEXT = 2
+
+
+class WindowLifter:
+    """The arm correction of the runtime (``inference.motion.self_contact``) on training windows,
+    so that the GRU trains on the poses it will see (the service lifts the arms by default).
+
+    Each window is lifted with up to LIFT_CONTEXT frames of its clip on each side, on its bank
+    shape (an ``ArmLifter`` per shape, built on first use). The window's gamma gets the change
+    that lifting makes to the descriptor: gamma + (desc(lifted context) - desc(context)), the same
+    finite-difference stencil on both, so the clip-level differences of the cached gamma stay.
+    The correction is invariant to the root translation: the neutral body's is used.
+    """
+
+    def __init__(self, body: BodyModel, bank: ShapeBank, motions: MotionBank):
+        self.body, self.bank, self.motions = body, bank, motions
+        self._lifters: dict[int, ArmLifter] = {}
+
+    def lifter(self, shape: int) -> ArmLifter:
+        if shape not in self._lifters:
+            self._lifters[shape] = ArmLifter(self.body, self.body.shape(self.bank.phenotypes[shape][None]))
+        return self._lifters[shape]
+
+    def __call__(self, shape_idx: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lifted rotations (B, T, J, 3) and gamma (B, T, F) of windows ``frames`` (B, T) (consecutive
+        frames of one clip each) on bank shapes ``shape_idx`` (B,)."""
+        m = self.motions
+        rotations, gamma = m.rotations[frames].copy(), m.gamma[frames].copy()
+        clip = np.searchsorted(m.clip_start, frames[:, 0], side="right") - 1
+        for b, (s, f) in enumerate(zip(shape_idx, frames)):  # per window: each has its own body
+            a = max(int(m.clip_start[clip[b]]), int(f[0]) - LIFT_CONTEXT)
+            e = min(int(m.clip_start[clip[b] + 1]), int(f[-1]) + 1 + LIFT_CONTEXT)
+            rot, trans = m.rotations[a:e], m.translation[a:e]
+            lifted, angles = self.lifter(int(s)).lift(rot, trans)
+            if not angles.any():
+                continue
+            win = f - a
+            rotations[b] = lifted[win]
+            delta = motion_descriptor(lifted[None], trans[None], m.fps)[0] - motion_descriptor(rot[None], trans[None], m.fps)[0]
+            gamma[b] += delta[win]
+        return rotations, gamma
+
+
+def pose_windows(body: BodyModel, bank: ShapeBank, shape_idx: np.ndarray, motions: MotionBank, frames: np.ndarray,
+                 lifter: WindowLifter | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Skinning transforms and gamma of windows on bank shapes (numpy, per training step).
 
-    shape_idx : (B,) into ``bank`` ; frames : (B, T) into ``motions``
+    shape_idx : (B,) into ``bank`` ; frames : (B, T) into ``motions`` ; lifter : the arm
+    correction of these windows (None: the clips' poses as retargeted)
     returns   : transforms (B, T, J, 4, 4) float32 (rest -> posed, inference.body.BodyModel.pose)
                 and gamma (B, T, F) float32
     """
     ratio = bank.leg_length_m[shape_idx] / motions.leg_length_m
-    translation, gamma = scale_motion(motions.translation[frames], motions.gamma[frames], ratio)
-    _, transforms = body.pose(bank.rest_bone_poses[shape_idx], motions.rotations[frames], translation)
+    rotations, gamma = lifter(shape_idx, frames) if lifter is not None else (motions.rotations[frames], motions.gamma[frames])
+    translation, gamma = scale_motion(motions.translation[frames], gamma, ratio)
+    _, transforms = body.pose(bank.rest_bone_poses[shape_idx], rotations, translation)
     return transforms, gamma
 
 

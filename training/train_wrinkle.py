@@ -44,6 +44,7 @@ from training.datasets import (
     MotionBank,
     ShapeBank,
     harmonic_basis,
+    WindowLifter,
     pose_windows,
     sample_adult_phenotypes,
 )
@@ -82,6 +83,7 @@ class WrinkleConfig:
     validation_frames: int = 120  # first frames of the validation clip
     max_clip_frames: int | None = None  # truncate clips (smoke runs)
     fresh_candidates: bool = True  # re-select collision candidates in every posed frame (KD-tree of the posed body)
+    lift_arms: bool = True  # train on the poses the service drapes: arms lifted out of the torso (inference.motion.self_contact)
     init: str | None = None  # warm start: a wrinkle.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
     threads: int = 1
@@ -129,9 +131,11 @@ class WindowBatch:
     candidates: torch.Tensor  # (B*T, V, k) int64
 
 
-def make_batch(body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, shape_idx: np.ndarray, frames: np.ndarray) -> WindowBatch:
-    """Pose windows ``frames`` (B, T) on bank shapes ``shape_idx`` (B,) (numpy FK, torch LBS)."""
-    transforms, gamma = pose_windows(body, bank, shape_idx, motions, frames)
+def make_batch(body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, shape_idx: np.ndarray, frames: np.ndarray,
+               lifter: WindowLifter | None = None) -> WindowBatch:
+    """Pose windows ``frames`` (B, T) on bank shapes ``shape_idx`` (B,) (numpy FK, torch LBS),
+    with the arms lifted out of the torso by ``lifter`` (as at runtime) when given."""
+    transforms, gamma = pose_windows(body, bank, shape_idx, motions, frames, lifter)
     T = frames.shape[1]
     tf = torch.as_tensor(transforms)
     bp, bn = posed_body_torch(bank, shape_idx, tf)
@@ -169,16 +173,17 @@ def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: f
     return sum(terms.values()).mean(), terms
 
 
-def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, weights: torch.Tensor, frames: int, fresh: bool = True) -> dict:
+def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, weights: torch.Tensor, frames: int,
+             fresh: bool = True, lifter: WindowLifter | None = None) -> dict:
     """Whole-sequence run (h0 = 0) of the validation clip on every bank shape: mean energy terms
     per frame (J) of the learned garment and of the fit-only baseline (R_L = 0); collision
-    candidates re-selected in every posed frame when ``fresh``."""
+    candidates re-selected in every posed frame when ``fresh``; arms lifted by ``lifter``."""
     T = min(frames, int(motions.clip_start[1]))
     out: dict[str, dict[str, float]] = {}
     with torch.no_grad():
         acc: dict[str, dict[str, float]] = {"learned": {}, "fit_only": {}}
         for s in range(len(bank)):
-            batch = make_batch(body, bank, fitted, motions, np.array([s]), np.arange(T)[None])
+            batch = make_batch(body, bank, fitted, motions, np.array([s]), np.arange(T)[None], lifter)
             for name, m in (("learned", model), ("fit_only", None)):
                 x = garment_frames(m, batch, weights, model.initial_state(1) if m is not None else None)
                 if fresh:
@@ -243,6 +248,15 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     weights = torch.as_tensor(asset.skin_weights.astype(np.float32))
     dt_s = 1.0 / motions.fps
+    lifter = WindowLifter(body, bank, motions) if config.lift_arms else None
+    val_lifter = WindowLifter(body, val_bank, val_motions) if config.lift_arms else None
+    metrics: dict = {}
+    if config.init:  # the starting point on this run's validation (comparable with the result)
+        model.eval()
+        metrics["validation_init"] = validate(model, cloth, body, val_bank, val_fitted, val_motions, weights, config.validation_frames, config.fresh_candidates, val_lifter)
+        model.train()
+        log.info("validation of the initial model: learned static %.5f J/frame, inside %.4f",
+                 metrics["validation_init"]["learned"]["static_j_per_frame"], metrics["validation_init"]["learned"]["inside_fraction"])
 
     budget_s = config.minutes * 60.0
     t0 = time.perf_counter()
@@ -253,7 +267,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
             g["lr"] = config.lr if progress < config.lr_drop else config.lr_final
         starts = rng.choice(motions.windows, config.batch_size)
         shape_idx = rng.integers(0, len(bank), config.batch_size)  # a new random shape per window
-        batch = make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, WINDOW_FRAMES))
+        batch = make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, WINDOW_FRAMES), lifter)
         h0 = model.initial_state(config.batch_size, config.h0_std, gen)  # h0 ~ N(0, 0.1)
         x = garment_frames(model, batch, weights, h0)
         if config.fresh_candidates:
@@ -271,7 +285,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
 
     model.eval()
     t_val = time.perf_counter()
-    metrics = {"validation": validate(model, cloth, body, val_bank, val_fitted, val_motions, weights, config.validation_frames, config.fresh_candidates)}
+    metrics["validation"] = validate(model, cloth, body, val_bank, val_fitted, val_motions, weights, config.validation_frames, config.fresh_candidates, val_lifter)
     metrics["validation"]["clip"] = config.validation_clip
     log.info("validation %s (%.0f s): learned static %.5f J/frame, inertia %.6f; fit-only static %.5f, inertia %.6f",
              config.validation_clip, time.perf_counter() - t_val,
