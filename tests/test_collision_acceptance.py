@@ -2,17 +2,19 @@
 sequence) for the neutral body and the two extreme adult corners, before and after the guard.
 
 CI runs a subsample of the frames (every 24th, ~29 frames) of two garments; the full table over
-every garment and every 4th frame is `python -m training.evaluate_collisions --every 4`
-(docs/evaluation.md). Bounds are regression guards at the measured values (see that table):
-the residual sits within a few cm of LBS self-intersections (arm sunk in the torso), where a
-vertex cannot be outside both parts.
+every garment and every 8th frame is `python -m training.evaluate_collisions --every 8`
+(docs/evaluation.md). Bounds are regression guards above the measured values (every 24th frame,
+arms lifted as the service does: after the guard, all / clean %, T-shirt and trousers: neutral
+0.200 / 0.025 and 0.010 / 0.002, lightest 0.005 / 0.003 and 0.017 / 0.011, heaviest 0.415 / 0.250
+and 0.017 / 0.017).
 """
 import pytest
 
 from training.evaluate_collisions import BODIES, evaluate
 
-# inside_pct_clean after the guard must stay below these (percent of garment vertices)
-BOUND_AFTER = {"neutral": 0.15, "min corner [0,.77,0,0,0,0]": 0.05, "max corner [1,1,1,1,1,1]": 1.5}
+# inside_pct_clean and inside_pct after the guard must stay below these (percent of garment vertices)
+BOUND_AFTER = {"neutral": 0.05, "min corner [0,.77,0,0,0,0]": 0.03, "max corner [1,1,1,1,1,1]": 0.4}
+BOUND_AFTER_ALL = {"neutral": 0.3, "min corner [0,.77,0,0,0,0]": 0.05, "max corner [1,1,1,1,1,1]": 0.6}
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +29,7 @@ def test_guard_reduces_collisions_on_01_01(rows):
         assert r.after["inside_pct"] <= r.before["inside_pct"], r
         assert r.after["inside_pct_clean"] <= r.before["inside_pct_clean"], r
         assert r.after["inside_pct_clean"] < BOUND_AFTER[r.body], (r.body, r.garment, r.after)
+        assert r.after["inside_pct"] < BOUND_AFTER_ALL[r.body], (r.body, r.garment, r.after)
 
 
 def test_guard_clears_the_light_body(rows):
