@@ -44,15 +44,17 @@ MODEL_VERSIONS = {
     "learned_fit": "snug-fit-v3",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v3",  # options.dynamics = 'learned', the default (wrinkle.onnx)
     "guard": "plane-push-v3",  # v3: per-frame candidates from farther limbs
+    "arms": "shoulder-lift-v1",  # options.lift_arms, the default (inference/motion/self_contact.py)
 }
 
 
 def used_model_versions(options) -> dict[str, str]:
-    """The versions of the models a request's options ran (its output metadata): body, fit,
+    """The versions of the models a request's options ran (its output metadata): body, arms, fit,
     dynamics and guard (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
     fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}[options.fit]
     dynamics = MODEL_VERSIONS["learned_dynamics"] if options.dynamics == "learned" else "none"
-    return {"body": MODEL_VERSIONS["body"], "fit": fit, "dynamics": dynamics, "guard": MODEL_VERSIONS["guard"] if options.guard else "none"}
+    return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none", "fit": fit, "dynamics": dynamics,
+            "guard": MODEL_VERSIONS["guard"] if options.guard else "none"}
 
 
 @dataclass(frozen=True)

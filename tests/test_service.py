@@ -166,3 +166,20 @@ def test_learned_models_are_selectable(client):
     assert np.abs(learned - base).max() > 1e-3  # the models change the garment
     # the wrinkle GRU output varies over time beyond the skinning (frames differ in unposed space)
     assert np.abs(np.diff(learned - base, axis=0)).max() > 1e-4
+
+
+def test_arm_correction_is_on_by_default_and_optional(client):
+    heavy = {**WALK_TSHIRT, "body": {"phenotypes": {"muscle": 1.0, "weight": 1.0, "height": 1.0, "proportions": 1.0, "gender": 1.0, "age": 1.0}},
+             "format": "npz"}
+
+    def run(options):
+        r = client.post("/v1/drape", json={**heavy, "options": {"guard": False, **options}})
+        assert r.status_code == 200, r.text
+        z = np.load(io.BytesIO(r.content), allow_pickle=False)
+        return z["body_vertices"], json.loads(str(z["metadata"]))["model_versions"]
+
+    lifted, versions = run({})
+    plain, versions_off = run({"lift_arms": False})
+    assert versions["arms"].startswith("shoulder-lift") and versions_off["arms"] == "none"
+    # the heavy body's arms move out of its torso; the returned body follows the corrected pose
+    assert np.abs(lifted - plain).max() > 0.01
