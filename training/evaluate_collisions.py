@@ -3,8 +3,9 @@
 Run: ``python -m training.evaluate_collisions [--clip 01_01] [--fit retarget] [--every 1]``
 
 For each body (neutral and the two extreme adult corners) and each catalog garment, drapes the
-clip (arms lifted out of the torso, as the service does by default) through ``inference.pipeline.drape`` and measures with the exact inside test of
-``inference.metrics`` (ray-crossing winding number), before and after the collision guard:
+clip (arms lifted out of the torso, as the service does by default) through
+``inference.pipeline.drape`` and measures with the exact inside test of ``inference.metrics``
+(ray-crossing winding number), before and after the collision guard:
 ``inside_pct`` (all vertices) and ``inside_pct_clean`` (vertices farther than 2 cm from a skin
 vertex that is itself inside another body part: LBS self-intersection, which no garment vertex
 can escape). Prints a Markdown table.
