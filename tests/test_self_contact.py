@@ -80,3 +80,13 @@ def test_pipeline_poses_the_lifted_arms(body):
     np.testing.assert_allclose(on.bone_poses, expected[0], atol=1e-6)
     assert np.abs(on.bone_poses - off.bone_poses).max() > 1e-3
     assert "arms" in on.timings_ms and "arms" not in off.timings_ms
+
+
+def test_lifter_cache_reuses_the_body_set_up(body):
+    from inference.motion.self_contact import ArmLifter, arm_lifter
+
+    shape, rot, trans = _motion(body, HEAVY, 8)
+    first = arm_lifter(body, shape)
+    assert arm_lifter(body, body.shape(HEAVY[None])) is first  # same phenotypes, same set-up
+    assert arm_lifter(body, body.shape(LIGHT[None])) is not first
+    np.testing.assert_array_equal(first.lift(rot, trans)[0], ArmLifter(body, shape).lift(rot, trans)[0])
