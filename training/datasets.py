@@ -25,8 +25,8 @@ from inference.garment import GarmentAsset
 from inference.guard import vertex_normals
 from inference.motion.asfamc import load_asf_amc
 from inference.motion.descriptor import DESCRIPTOR_LAYOUT, motion_descriptor
-from inference.motion.self_contact import ArmLifter
 from inference.motion.retarget import ground, retarget, target_leg_length
+from inference.motion.self_contact import ArmLifter
 from training.models import phenotype_box
 from training.physics import body_candidates
 

@@ -43,6 +43,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.body import BodyModel, BodyShape, linear_blend_skinning
+from inference.guard import vertex_normals
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 # Bones of each arm chain (shoulder joint = head of the first) and of the body they must clear.
@@ -94,8 +95,6 @@ class ArmLifter:
     for many motions of one body (training draws many windows per bank shape)."""
 
     def __init__(self, body: BodyModel, shape: BodyShape):
-        from inference.guard import vertex_normals  # the guard's area-weighted normals
-
         self.body, self.shape = body, shape
         self.rest = shape.rest_vertices[0]
         self.rest_normals = vertex_normals(self.rest, body.faces)
