@@ -63,6 +63,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError, InputValueError
+from inference.triangles import closest_barycentrics
 
 # Default clearance between the body and the innermost garment (DESIGN.md §3: 2–4 mm).
 DEFAULT_MARGIN_M = 0.002
@@ -96,6 +97,9 @@ _SQUEEZE_RADIUS_M = 0.02
 _TANGENT_M = 0.012
 # ... if that candidate is at most this much farther than the nearest one, metres.
 _FARTHER_M = 0.02
+# Closed colliders: the one-ring triangles of this many nearest candidates decide, after the push,
+# whether a point is still inside (``_refine_block``; 0 turns the check off).
+REFINE_CANDIDATES = 3
 # Mesh components smaller than this fraction of the vertices are accessories (anny's eyes, teeth).
 MAJOR_COMPONENT_FRACTION = 0.1
 # Extra candidates are looked up this far along the rest normal (the other side of a crease).
@@ -298,6 +302,8 @@ def _push_planes(
                 Pb[:, live], C, Nrm, flat[:, live], None if acr is None else acr[:, live],
                 M, margin_m, max_push_m, boundary, reach_m, iterations,
             )
+            if plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0:
+                res[:, live] = _refine_block(res[:, live], C, Nrm, flat[:, live], plan.ring, M, margin_m)
         out[:, f0:f1] = res.reshape(3, f1 - f0, N)
     return out
 
@@ -392,6 +398,51 @@ def _push_pass(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach
     return delta[moved], [n[moved] for n in na], act[moved]
 
 
+def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, M: int, margin_m: float) -> np.ndarray:
+    """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
+    frame-major planes C, Nrm (3, BT*M); ring (M, R, 3) one-ring triangles of the plan vertices.
+
+    The tangent plane of the nearest vertex misjudges points where the surface curves within a
+    few millimetres (an elbow pit, the crease of an armpit). Among the one-ring triangles of the
+    REFINE_CANDIDATES nearest candidates, the closest point q (``inference.triangles``) and the
+    normal n_q interpolated from the corners' vertex normals (Phong) decide: a point with
+    (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays.
+    Returns (3, L) float32.
+    """
+    k = flat.shape[0]
+    kr = int(min(REFINE_CANDIDATES, k))
+    G = [np.take(C[c], flat) for c in range(3)]
+    d2 = (P[0] - G[0]) ** 2 + (P[1] - G[1]) ** 2 + (P[2] - G[2]) ** 2
+    L = flat.shape[1]
+    near = np.argpartition(d2, kr - 1, axis=0)[:kr] if kr < k else np.arange(k)[:, None].repeat(L, 1)
+    sel = np.take_along_axis(flat, near, 0)  # (kr, L) flat ids f * M + s
+    # the ring triangles (centre, b, c) of each selected vertex, laid out (kr, R, L)
+    other = np.moveaxis(ring[sel % M], 2, 1) + (sel - sel % M)[:, None, :, None]  # (kr, R, L, 2) flat ids
+    centre = [np.take(C[c], sel)[:, None] for c in range(3)]  # (kr, 1, L)
+    corner = [np.take(C[c], other) for c in range(3)]  # (kr, R, L, 2)
+    ap = [P[c] - centre[c] for c in range(3)]
+    ab = [corner[c][..., 0] - centre[c] for c in range(3)]
+    ac = [corner[c][..., 1] - centre[c] for c in range(3)]
+    v, w = closest_barycentrics(ap, ab, ac)
+    # squared distance |ap - v ab - w ac|^2, smallest over the (kr, R) triangles
+    r = [ap[c] - v * ab[c] - w * ac[c] for c in range(3)]
+    best = np.argmin((r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).reshape(-1, L), axis=0)[None]
+    pick = lambda a: np.take_along_axis(np.broadcast_to(a, v.shape).reshape(-1, L), best, 0)[0]  # noqa: E731
+    vb, wb = pick(v), pick(w)
+    ub = 1 - vb - wb
+    rb = [pick(r[c]) for c in range(3)]  # p - q
+    ids = [pick(sel[:, None]), pick(other[..., 0]), pick(other[..., 1])]
+    n = [ub * np.take(Nrm[c], ids[0]) + vb * np.take(Nrm[c], ids[1]) + wb * np.take(Nrm[c], ids[2]) for c in range(3)]
+    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    inside = (rb[0] * n[0] + rb[1] * n[1] + rb[2] * n[2] < 0) & (norm > 0)
+    out = P.copy()
+    if inside.any():
+        scale = margin_m / norm[inside]
+        for c in range(3):  # q + margin n_q, q = p - (p - q)
+            out[c, inside] = P[c, inside] - rb[c][inside] + scale * n[c][inside]
+    return out
+
+
 # ------------------------------------------------------------------------------ plan
 def _gather(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """a (B, M, 3), idx (B, N) -> (B, N, 3)."""
@@ -422,6 +473,28 @@ def boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     return out
 
 
+def _one_rings(tris: np.ndarray, S: int) -> np.ndarray:
+    """(S, R, 2): the triangles around each vertex s < S, from triangles (n, 3) of local vertex
+    ids, each rotated to (s, b, c) (same orientation) and stored as (b, c); a row repeats its
+    first triangle up to R (the largest valence); a vertex on no triangle gets (s, s) (such
+    vertices are never candidates: they only close the rings)."""
+    tris = np.asarray(tris, np.int64)
+    vert = tris.ravel()
+    corner = np.tile(np.arange(3), len(tris))
+    tri = np.repeat(np.arange(len(tris)), 3)
+    rest = np.stack([tris[tri, (corner + 1) % 3], tris[tri, (corner + 2) % 3]], axis=1)  # (3n, 2)
+    order = np.argsort(vert, kind="stable")
+    vert, rest = vert[order], rest[order]
+    count = np.bincount(vert, minlength=S)
+    first = np.cumsum(count) - count
+    col = np.arange(len(vert)) - first[vert]
+    table = np.repeat(np.arange(S)[:, None, None], 2, axis=2).repeat(max(int(count.max()), 1), axis=1)
+    has = count > 0
+    table[has] = rest[first[has]][:, None, :]
+    table[vert, col] = rest
+    return table.astype(np.int32)
+
+
 @dataclass(frozen=True)
 class GuardPlan:
     """Per-request precomputation for ``guard``: candidates and normal data of one collider.
@@ -438,6 +511,9 @@ class GuardPlan:
     dynamic_points : (Nd,) int or None, points that get per-frame nearest candidates (skin-aware
                      plans: points within DYNAMIC_RISK_M of a part skinned to another bone)
     dynamic_region : (R,) int or None, indices into ``collider_ids`` searched for them per frame
+    ring           : (S, R, 2) int or None, closed colliders: the triangles around each collider
+                     vertex s (its one-ring, padded by repetition) as (s, b, c) counter-clockwise,
+                     b and c indices into ``collider_ids``, for the closest-triangle check
     """
 
     collider_ids: np.ndarray
@@ -451,6 +527,7 @@ class GuardPlan:
     reach_m: float
     dynamic_points: np.ndarray | None = None
     dynamic_region: np.ndarray | None = None
+    ring: np.ndarray | None = None
 
     @classmethod
     def build(
@@ -583,8 +660,14 @@ class GuardPlan:
             & (np.einsum("bnkc,bnkc->bnk", rel, nj) > 0)
             & (np.einsum("bnkc,bnc->bnk", rel, n0) < 0)
         )
-        collider_ids, local = np.unique(np.concatenate([cand.ravel(), extra_ids]), return_inverse=True)
-        local = local[: cand.size].reshape(cand.shape)
+        touched = np.unique(np.concatenate([cand.ravel(), extra_ids]))
+        ring_faces = None
+        if not bnd.any():
+            # closed collider: the candidates' one-ring triangles, so their corners join the plan
+            ring_faces, _ = vertex_face_incidence(faces, M, touched)
+            touched = np.union1d(touched, faces[ring_faces].ravel())
+        collider_ids = touched
+        local = np.searchsorted(collider_ids, cand)
         face_ids, inc = vertex_face_incidence(faces, M, collider_ids)
         e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
         reach = float(np.median(np.linalg.norm(e, axis=-1)))
@@ -601,6 +684,7 @@ class GuardPlan:
             reach_m=reach,
             dynamic_points=dynamic_points if has_dynamic else None,
             dynamic_region=np.searchsorted(collider_ids, dynamic_region_ids) if has_dynamic else None,
+            ring=None if ring_faces is None else _one_rings(np.searchsorted(collider_ids, faces[ring_faces]), len(collider_ids)),
         )
 
     def collider_planes(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -43,7 +43,7 @@ MODEL_VERSIONS = {
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v4",  # options.dynamics = 'learned', the default (wrinkle.onnx)
-    "guard": "plane-push-v3",  # v3: per-frame candidates from farther limbs
+    "guard": "plane-push-v4",  # v4: closest-triangle check after the push (v3: farther limbs)
     "arms": "shoulder-lift-v1",  # options.lift_arms, the default (inference/motion/self_contact.py)
 }
 

@@ -172,3 +172,57 @@ def test_end_to_end_on_posed_body(posed_body):
         far = sd0 > MARGIN + 0.001
         np.testing.assert_array_equal(out[0, t, far], pts[0, t, far])  # outside beyond the margin: untouched
     assert (near_self_intersection(out[:, 1], posed[:, 1], F, 0.02)).sum() > 0  # the arm frame has a region
+
+
+def _l_prism():
+    """Closed L-shaped prism [0,2]x[0,1] u [0,1]x[0,2] x [0,1] (metres), coarse: 12 vertices. Its
+    inner corner edge (x = y = 1) is concave."""
+    ring = np.array([(0, 0), (2, 0), (2, 1), (1, 1), (1, 2), (0, 2)], np.float32)
+    verts = np.concatenate([np.c_[ring, np.zeros(6)], np.c_[ring, np.ones(6)]]).astype(np.float32)
+    fan = [(0, 1, 2), (0, 2, 3), (0, 3, 4), (0, 4, 5)]
+    sides = [f for i in range(6) for f in ((i, (i + 1) % 6, 6 + (i + 1) % 6), (i, 6 + (i + 1) % 6, 6 + i))]
+    faces = np.array([f[::-1] for f in fan] + [tuple(6 + j for j in f) for f in fan] + sides, np.int64)
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    trimesh.repair.fix_normals(mesh)
+    assert mesh.is_volume
+    return verts, np.asarray(mesh.faces, np.int64)
+
+
+def test_closest_triangle_check_catches_a_point_the_vertex_plane_misjudges(monkeypatch):
+    """Just inside the face x = 1 next to the concave corner edge, the nearest vertex is on that
+    edge, whose tangent plane (normal along the notch's bisector) misjudges the point; the
+    closest triangle (the face x = 1) shows it is inside, and the check moves it out."""
+    import inference.guard as G
+
+    verts, faces = _l_prism()
+    rng = np.random.default_rng(0)  # up to 10 cm inside the face x = 1 of the upper bar
+    pts = np.c_[rng.uniform(0.9, 1.0, 400), rng.uniform(1.05, 1.95, 400), rng.uniform(0.05, 0.95, 400)].astype(np.float32)
+    assert inside_mask(pts[None], verts[None], faces).all()
+    plan = GuardPlan.build(pts[None], verts[None], faces, k=4)
+    assert plan.ring is not None
+
+    monkeypatch.setattr(G, "REFINE_CANDIDATES", 0)
+    plane_only = guard(pts[None, None], verts[None, None], plan, MARGIN)[0, 0]
+    assert inside_mask(plane_only[None], verts[None], faces).mean() > 0.1  # the tangent planes miss them (117 of 400)
+    monkeypatch.undo()
+
+    out = guard(pts[None, None], verts[None, None], plan, MARGIN)[0, 0]
+    assert not inside_mask(out[None], verts[None], faces).any()
+    # outside: at the margin along the interpolated normal, which this coarse corner tilts far
+    # from the face normal (0.8 mm of the 2 mm clearance is left at worst)
+    d = signed_distance(out[None], verts[None], faces)[0]
+    assert (d > 0.3 * MARGIN).all()
+
+
+def test_closest_triangle_check_leaves_outside_points_alone():
+    verts, faces = _sphere(2)
+    rng = np.random.default_rng(4)
+    dirs = rng.normal(size=(300, 3)).astype(np.float32)
+    pts = (dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * rng.uniform(1.003, 1.05, (300, 1))).astype(np.float32)
+    plan = GuardPlan.build(pts[None], verts[None], faces)
+    out = guard(pts[None, None], verts[None, None], plan, MARGIN)[0, 0]
+    moved = np.linalg.norm(out - pts, axis=1) > 0
+    # a point can only move when the surface is within the margin (vertex planes over-push on a
+    # convex mesh); every point ends outside
+    assert not inside_mask(out[None], verts[None], faces).any()
+    assert (signed_distance(pts[None], verts[None], faces)[0][moved] < MARGIN + 0.05).all()
