@@ -6,10 +6,10 @@ in one of seven Voronoi regions (the three vertices, the three edges, the interi
     d1 = ab.ap, d2 = ac.ap, d3 = ab.bp, d4 = ac.bp, d5 = ab.cp, d6 = ac.cp
     va = d3 d6 - d5 d4, vb = d5 d2 - d1 d6, vc = d1 d4 - d3 d2
 
-and q = u a + v b + w c with barycentrics (u, v, w), u + v + w = 1, all >= 0. Here every
-quantity is an array over pairs and the regions are selected with ``np.where`` (no branches).
+and q = a + v ab + w ac with barycentrics (1 - v - w, v, w), all >= 0. Here every quantity is an
+array over pairs, and the regions are selected arithmetically (no branches, no ``np.where``).
 
-Layout: a point or corner is a list of three arrays (x, y, z) of one shape (structure of
+Layout: a vector is a list of three arrays (x, y, z) that broadcast to one shape (structure of
 arrays, as ``inference.guard`` gathers them), so nothing is stacked or transposed.
 Units: metres. Float32 in, float32 out.
 """
