@@ -20,7 +20,8 @@ on coordinate planes (structure of arrays) is several times faster than gatherin
 Points that another body part can reach when a joint bends (skin-aware plans) also get their
 posed nearest collider vertices in every frame, from a KD-tree over the collider vertices near
 them in the rest pose plus, thinned, the farther ones a limb can bring in (a forearm against
-the back); this per-frame search is most of the guard's cost.
+the back); this per-frame search is most of the guard's cost, the closest-triangle check
+below the second largest part (measured for a 5k-vertex T-shirt: ~4 and ~2.7 ms per frame).
 
 Self-intersecting bodies. Under LBS the posed body intersects itself (an upper arm sunk into
 the torso); a garment vertex squeezed there cannot be outside both parts. The guard does not
