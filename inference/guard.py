@@ -270,10 +270,12 @@ def _push_planes(
     reach_m: float,
     iterations: int,
     plan: GuardPlan | None = None,
+    check: bool = True,
 ) -> np.ndarray:
     """``push_outside`` on coordinate planes: P (3, BT, N); C, Nrm (3, BT*M) frame-major;
     candidates, across (B|1, N, k); ``plan`` with dynamic points: their per-frame nearest
-    candidates are added (``_dynamic_candidates``; never across). Returns (3, BT, N) float32.
+    candidates are added (``_dynamic_candidates``; never across); ``check``: then the
+    closest-triangle check (``_refine_block``) where the plan has rings. Returns (3, BT, N) float32.
 
     Frames go through in blocks of about ``_BLOCK_ELEMENTS`` candidate entries (cache blocking:
     one (k, BT*N) block of 16 frames is ~2.5x slower per frame than blocks of 4, measured).
@@ -314,14 +316,14 @@ def _push_planes(
                 Pb[:, live], C, Nrm, flat[:, live], None if acr is None else acr[:, live],
                 M, margin_m, max_push_m, boundary, reach_m, iterations,
             )
-            if plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0:
-                check = live
+            if check and plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0:
+                todo = live
                 for _ in range(REFINE_PASSES):  # later passes: only the points the last one moved
-                    new = _refine_block(res[:, check], C, Nrm, flat[:, check], plan.ring, M, margin_m)
-                    moved = np.flatnonzero((new != res[:, check]).any(0))
-                    res[:, check] = new
-                    check = check[moved]
-                    if len(check) == 0:
+                    new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, M, margin_m)
+                    moved = np.flatnonzero((new != res[:, todo]).any(0))
+                    res[:, todo] = new
+                    todo = todo[moved]
+                    if len(todo) == 0:
                         break
         out[:, f0:f1] = res.reshape(3, f1 - f0, N)
     return out
@@ -754,12 +756,14 @@ def guard(
     *,
     max_push_m: float | None = None,
     iterations: int = 1,
+    check: bool = True,
 ) -> np.ndarray:
     """Collision guard, thesis ch. 4.2.1: no point inside or within ``margin_m`` of the collider.
 
     points   : (B, T, N, 3) float32, metres, posed garment vertices
     collider : (B, T, M, 3) float32, metres, posed body (or inner garment) vertices
     plan     : ``GuardPlan.build`` of these points and this collider
+    check    : the closest-triangle check after the push (closed colliders; module docstring)
     returns  : (B, T, N, 3) float32, metres (``push_outside`` on the plan's collider vertices)
     """
     points = _check_frames("points", points)
@@ -771,7 +775,7 @@ def guard(
     cp, cn = plan.collider_planes(collider)
     out = _push_planes(
         _planes(points).reshape(3, B * T, N), cp, cn, plan.candidates, plan.across, T, len(plan.collider_ids), margin_m,
-        max_push_m, plan.boundary, plan.reach_m, iterations, plan,
+        max_push_m, plan.boundary, plan.reach_m, iterations, plan, check,
     )
     return np.moveaxis(out.reshape(3, B, T, N), 0, -1)
 
@@ -841,19 +845,22 @@ def guard_layers(
     plans: LayerPlans,
     body_margin_m: float = DEFAULT_MARGIN_M,
     layer_margin_m: float = DEFAULT_LAYER_MARGIN_M,
+    check: bool = True,
 ) -> list[np.ndarray]:
     """Guard a stack of garments, innermost first (see the module docstring).
 
     layer i: p_i <- guard(p_i, body, margin = body_margin_m + i * layer_margin_m)
              p_i <- guard(p_i, p_j, margin = layer_margin_m) for j = 0 .. i-1 (guarded p_j)
     layers : each (B, T, N_i, 3) float32, metres ; body : (B, T, Vb, 3) float32, metres
+    check  : the closest-triangle check against the body (module docstring; 3-4 ms per
+             garment-frame for 5k vertices)
     returns: list of (B, T, N_i, 3) float32
     """
     if len(layers) != len(plans.body):
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
-        p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m, iterations=GUARD_ITERATIONS)
+        p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m, iterations=GUARD_ITERATIONS, check=check)
         for j in range(i):
             p = guard(p, out[j], plans.inner[i][j], layer_margin_m)
         out.append(p)

@@ -46,7 +46,8 @@ class DrapeOptions:
     Default: the learned model, thesis eq. 4.2 (retarget + R_G + R_L, then LBS); the baselines
     stay selectable for comparison (docs/evaluation.md compares the three).
     margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost.
-    lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``)."""
+    lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``).
+    guard_check: the guard's closest-triangle check after its plane push (``inference.guard``)."""
 
     fit: FitMode = "learned"
     dynamics: DynamicsMode = "learned"
@@ -55,6 +56,7 @@ class DrapeOptions:
     layer_gap_m: float = 0.003
     include_body: bool = True
     lift_arms: bool = True
+    guard_check: bool = True
 
 
 @dataclass(frozen=True)
@@ -246,7 +248,7 @@ def drape(
             rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
             plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
                                      layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights)
-            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m)
+            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0]) for g, p in zip(garments, posed)],

@@ -43,7 +43,8 @@ MODEL_VERSIONS = {
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v4",  # options.dynamics = 'learned', the default (wrinkle.onnx)
-    "guard": "plane-push-v4",  # v4: closest-triangle check after the push (v3: farther limbs)
+    "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.guard_check, the default)
+    "guard_plain": "plane-push-v3",  # options.guard_check = false: the push alone (v3: farther limbs)
     "arms": "shoulder-lift-v1",  # options.lift_arms, the default (inference/motion/self_contact.py)
 }
 
@@ -54,7 +55,7 @@ def used_model_versions(options) -> dict[str, str]:
     fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}[options.fit]
     dynamics = MODEL_VERSIONS["learned_dynamics"] if options.dynamics == "learned" else "none"
     return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none", "fit": fit, "dynamics": dynamics,
-            "guard": MODEL_VERSIONS["guard"] if options.guard else "none"}
+            "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard else "none"}
 
 
 @dataclass(frozen=True)
@@ -208,7 +209,7 @@ class Runtime:
                 "/body", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
             )
         options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body,
-                               lift_arms=o.lift_arms)
+                               lift_arms=o.lift_arms, guard_check=o.guard_check)
         return PreparedDrape(request, shape, motion, assets, options, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:

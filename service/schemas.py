@@ -94,6 +94,12 @@ class DrapeOptions(_Strict):
         description="abduct the upper arms about the shoulder, per frame, where the body shape sinks them into the torso "
         "(a clip retargeted onto a heavier body); the returned body follows the corrected pose. false: the pose as given",
     )
+    guard_check: bool = Field(
+        True,
+        description="after the guard's push along the nearest body vertex's normal, check each nearby garment vertex "
+        "against the closest body triangle and move it out where it is still inside (2-4x fewer vertices left inside "
+        "the body, ~3-4 ms per garment-frame). false: the push alone (~1.4x the throughput)",
+    )
 
 
 class DrapeRequest(_Strict):

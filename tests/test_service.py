@@ -183,3 +183,21 @@ def test_arm_correction_is_on_by_default_and_optional(client):
     assert versions["arms"].startswith("shoulder-lift") and versions_off["arms"] == "none"
     # the heavy body's arms move out of its torso; the returned body follows the corrected pose
     assert np.abs(lifted - plain).max() > 0.01
+
+
+def test_guard_check_is_on_by_default_and_optional(client):
+    heavy = {**WALK_TSHIRT, "body": {"phenotypes": {"muscle": 1.0, "weight": 1.0, "height": 1.0, "proportions": 1.0, "gender": 1.0, "age": 1.0}},
+             "format": "npz"}
+
+    def run(options):
+        r = client.post("/v1/drape", json={**heavy, "options": options})
+        assert r.status_code == 200, r.text
+        z = np.load(io.BytesIO(r.content), allow_pickle=False)
+        return z["garment_0_vertices"], json.loads(str(z["metadata"]))["model_versions"]
+
+    checked, versions = run({})
+    plain, versions_off = run({"guard_check": False})
+    assert versions["guard"] == "plane-push-v4" and versions_off["guard"] == "plane-push-v3"
+    # the check moves the vertices the plane push left inside the body, and only those
+    moved = np.linalg.norm(checked - plain, axis=-1) > 0
+    assert 0 < moved.mean() < 0.01
