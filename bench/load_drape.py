@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
 import platform
 import random
@@ -32,10 +33,14 @@ REPO = Path(__file__).resolve().parents[1]
 FRAMES = 30
 
 
+# extra request options for every request (--options)
+EXTRA_OPTIONS: dict = {}
+
+
 def body(rng: random.Random, frames: int = FRAMES, guard: bool = True) -> dict:
     return {
         "motion": {"type": "clip", "clip": "dance", "start_s": round(rng.uniform(0.0, 9.0), 3), "duration_s": (frames - 1) / 30.0},
-        "garments": [{"id": "tshirt"}], "format": "npz", "options": {"include_body": False, "guard": guard},
+        "garments": [{"id": "tshirt"}], "format": "npz", "options": {"include_body": False, "guard": guard, **EXTRA_OPTIONS},
     }
 
 
@@ -207,7 +212,9 @@ def main() -> None:
     ap.add_argument("--overload-seconds", type=float, default=20.0, help="0: skip the 2x overload run")
     ap.add_argument("--timeout", type=float, default=60.0, help="client timeout, seconds")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--options", type=json.loads, default={}, help='extra request options, JSON (e.g. \'{"guard_check": false}\')')
     args = ap.parse_args()
+    EXTRA_OPTIONS.update(args.options)
 
     print(f"machine: {machine()}\n")
     print("\n".join(HEADER))

@@ -564,6 +564,7 @@ class GuardPlan:
         k_frames: int = 4,
         skin: tuple[np.ndarray, np.ndarray] | None = None,
         k_skin: int = 4,
+        rings: bool = True,
     ) -> "GuardPlan":
         """Candidates: the k collider vertices nearest to each point in the reference pose, plus
         the k_ahead nearest to p + ahead_m n_0 (n_0: normal of the nearest vertex), plus the
@@ -583,6 +584,8 @@ class GuardPlan:
         frames         : optional (points (B, T', N, 3), collider (B, T', M, 3)) posed key frames;
                          each adds its ``k_frames`` nearest collider vertices per point
         skin           : optional (point weights (N, J), collider weights (M, J)) LBS weights
+        rings          : closed colliders: also keep the candidates' one-ring triangles and
+                         their corners (``ring``, for the closest-triangle check)
         """
         points_rest = _check_frames("points_rest", points_rest, 3)
         collider_rest = _check_frames("collider_rest", collider_rest, 3)
@@ -683,7 +686,7 @@ class GuardPlan:
         )
         touched = np.unique(np.concatenate([cand.ravel(), extra_ids]))
         ring_faces = None
-        if not bnd.any():
+        if rings and not bnd.any():
             # closed collider: the candidates' one-ring triangles, so their corners join the plan
             ring_faces, _ = vertex_face_incidence(faces, M, touched)
             touched = np.union1d(touched, faces[ring_faces].ravel())
@@ -824,15 +827,17 @@ class LayerPlans:
         k: int = DEFAULT_CANDIDATES,
         layer_weights: Sequence[np.ndarray] | None = None,
         body_weights: np.ndarray | None = None,
+        rings: bool = True,
     ) -> "LayerPlans":
         """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3);
         layer_weights / body_weights : optional LBS weights (N_i, J) / (Vb, J) for
-        skinning-aware body candidates (GuardPlan.build's ``skin``)."""
+        skinning-aware body candidates (GuardPlan.build's ``skin``); rings : the body plans keep
+        the triangles of the closest-triangle check (not needed with ``guard_layers(check=False)``)."""
         if len(layers_rest) != len(layer_faces):
             raise InputValueError("layer_faces", f"expected {len(layers_rest)} face arrays, got {len(layer_faces)}")
         body = [
             GuardPlan.build(g, body_rest, body_faces, k if layer_weights is None else SKIN_PLAN_K,
-                            skin=None if layer_weights is None else (layer_weights[i], body_weights), k_skin=2)
+                            skin=None if layer_weights is None else (layer_weights[i], body_weights), k_skin=2, rings=rings)
             for i, g in enumerate(layers_rest)
         ]
         inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] for i in range(len(layers_rest))]

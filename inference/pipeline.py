@@ -247,7 +247,8 @@ def drape(
             # against the neutral body, the pose its skinning transforms start from).
             rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
             plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
-                                     layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights)
+                                     layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights,
+                                     rings=options.guard_check)
             posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
 
     return DrapeResult(
