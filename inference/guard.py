@@ -21,7 +21,7 @@ Points that another body part can reach when a joint bends (skin-aware plans) al
 posed nearest collider vertices in every frame, from a KD-tree over the collider vertices near
 them in the rest pose plus, thinned, the farther ones a limb can bring in (a forearm against
 the back); this per-frame search is most of the guard's cost, the closest-triangle check
-below the second largest part (measured for a 5k-vertex T-shirt: ~4 and ~2.7 ms per frame).
+below the second largest part (measured for a 5k-vertex T-shirt: ~4 and 3-4 ms per frame).
 
 Self-intersecting bodies. Under LBS the posed body intersects itself (an upper arm sunk into
 the torso); a garment vertex squeezed there cannot be outside both parts. The guard does not
@@ -51,8 +51,11 @@ plane push left inside the body were of this kind. After the push, every point t
 screening kept is checked against the one-ring triangles of its ``REFINE_CANDIDATES`` nearest
 candidates: q = the closest point on those triangles (``inference.triangles``), n_q = the
 vertex normals interpolated at q (Phong), and a point with (p - q) . n_q < 0 moves to
-q + margin n_q / |n_q|. The plan therefore holds the candidates' one-rings (``GuardPlan.ring``)
-and their corners.
+q + margin n_q / |n_q|; a second pass re-checks the points the first one moved (one that lands
+inside a neighbouring part). The plan therefore holds the candidates' one-rings
+(``GuardPlan.ring``) and their corners. Measured on 01_01 (docs/evaluation.md): 2-4x fewer
+vertices left inside after the guard; what remains lies mostly in the body's own folds and
+overlaps, where no local push can be right.
 
 Layers (``guard_layers``): garments in layer order, innermost first; layer i is pushed out of
 the body with margin ``body_margin_m + i * layer_margin_m`` and then out of every inner garment
@@ -111,6 +114,7 @@ _FARTHER_M = 0.02
 # Closed colliders: the one-ring triangles of this many nearest candidates decide, after the push,
 # whether a point is still inside (``_refine_block``; 0 turns the check off).
 REFINE_CANDIDATES = 3
+# Passes of that check; each later one revisits only the points the previous one moved.
 REFINE_PASSES = 2
 # Mesh components smaller than this fraction of the vertices are accessories (anny's eyes, teeth).
 MAJOR_COMPONENT_FRACTION = 0.1
@@ -421,7 +425,7 @@ def _push_pass(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach
 
 def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, M: int, margin_m: float) -> np.ndarray:
     """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
-    frame-major planes C, Nrm (3, BT*M); ring (M, R, 3) one-ring triangles of the plan vertices.
+    frame-major planes C, Nrm (3, BT*M); ring (M, R, 2) one-ring triangles of the plan vertices.
 
     The tangent plane of the nearest vertex misjudges points where the surface curves within a
     few millimetres (an elbow pit, the crease of an armpit). Among the one-ring triangles of the
