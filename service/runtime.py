@@ -45,7 +45,7 @@ MODEL_VERSIONS = {
     "learned_dynamics": "snug-gru-v4",  # options.dynamics = 'learned', the default (wrinkle.onnx)
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.guard_check, the default)
     "guard_plain": "plane-push-v3",  # options.guard_check = false: the push alone (v3: farther limbs)
-    "arms": "shoulder-lift-v1",  # options.lift_arms, the default (inference/motion/self_contact.py)
+    "arms": "shoulder-lift-v2",  # options.lift_arms, the default (inference/motion/self_contact.py); v2: 10 mm clearance
 }
 
 
