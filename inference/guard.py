@@ -323,7 +323,7 @@ def _push_planes(
             if check and plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0:
                 todo = live
                 for _ in range(REFINE_PASSES):  # later passes: only the points the last one moved
-                    new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, M, margin_m)
+                    new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, M, margin_m, plan.ring_valence)
                     moved = np.flatnonzero((new != res[:, todo]).any(0))
                     res[:, todo] = new
                     todo = todo[moved]
@@ -423,7 +423,24 @@ def _push_pass(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach
     return delta[moved], [n[moved] for n in na], act[moved]
 
 
-def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, M: int, margin_m: float) -> np.ndarray:
+def _ring_closest(ap, centre, C, other):
+    """Closest points on ring triangles (centre, b, c): ap = p - centre and centre (3 x arrays
+    broadcasting against other[..., 0]), other (..., 2) flat ids of b and c into C (3, .).
+    Returns barycentrics v, w and p - q (3 x arrays) of other[..., 0]'s shape."""
+    corner = [np.take(C[c], other) for c in range(3)]
+    ab = [corner[c][..., 0] - centre[c] for c in range(3)]
+    ac = [corner[c][..., 1] - centre[c] for c in range(3)]
+    v, w = closest_barycentrics(ap, ab, ac)
+    return v, w, [ap[c] - v * ab[c] - w * ac[c] for c in range(3)]
+
+
+# Ring slots computed for every selected vertex; rings with more triangles (valence 7-8: ~13 % of
+# anny's vertices, most have 6) get the rest computed for them alone.
+_RING_SLOTS = 6
+
+
+def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, M: int, margin_m: float,
+                  valence: np.ndarray | None = None) -> np.ndarray:
     """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
     frame-major planes C, Nrm (3, BT*M); ring (M, R, 2) one-ring triangles of the plan vertices.
 
@@ -434,6 +451,8 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
     (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays.
     Returns (3, L) float32.
     """
+    if valence is None:
+        valence = np.full(len(ring), ring.shape[1])
     k = flat.shape[0]
     kr = int(min(REFINE_CANDIDATES, k))
     G = [np.take(C[c], flat) for c in range(3)]
@@ -444,13 +463,23 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
     # the ring triangles (centre, b, c) of each selected vertex, laid out (kr, R, L)
     other = np.moveaxis(ring[sel % M], 2, 1) + (sel - sel % M)[:, None, :, None]  # (kr, R, L, 2) flat ids
     centre = [np.take(C[c], sel)[:, None] for c in range(3)]  # (kr, 1, L)
-    corner = [np.take(C[c], other) for c in range(3)]  # (kr, R, L, 2)
     ap = [P[c] - centre[c] for c in range(3)]
-    ab = [corner[c][..., 0] - centre[c] for c in range(3)]
-    ac = [corner[c][..., 1] - centre[c] for c in range(3)]
-    v, w = closest_barycentrics(ap, ab, ac)
-    # squared distance |ap - v ab - w ac|^2, smallest over the (kr, R) triangles
-    r = [ap[c] - v * ab[c] - w * ac[c] for c in range(3)]
+    R = other.shape[1]
+    R0 = min(R, _RING_SLOTS)
+    v, w, r = _ring_closest(ap, centre, C, other[:, :R0])  # the first R0 triangles of every ring
+    if R > R0:
+        # slots past a ring's valence repeat its first triangle (``_one_rings``): their results are
+        # slot 0's, so only the rings with more than R0 triangles are computed there
+        v, w = (np.concatenate([a, np.repeat(a[:, :1], R - R0, axis=1)], axis=1) for a in (v, w))
+        r = [np.concatenate([a, np.repeat(a[:, :1], R - R0, axis=1)], axis=1) for a in r]
+        j, col = np.nonzero(valence[sel % M] > R0)
+        if len(j):
+            sub = other[j, R0:, col]  # (E, R - R0, 2)
+            cj = [np.take(C[c], sel[j, col])[:, None] for c in range(3)]
+            vx, wx, rx = _ring_closest([P[c][col][:, None] - cj[c] for c in range(3)], cj, C, sub)
+            v[j, R0:, col], w[j, R0:, col] = vx, wx
+            for c in range(3):
+                r[c][j, R0:, col] = rx[c]
     best = np.argmin((r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).reshape(-1, L), axis=0)[None]
     pick = lambda a: np.take_along_axis(np.broadcast_to(a, v.shape).reshape(-1, L), best, 0)[0]  # noqa: E731
     vb, wb = pick(v), pick(w)
@@ -498,11 +527,11 @@ def boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     return out
 
 
-def _one_rings(tris: np.ndarray, S: int) -> np.ndarray:
+def _one_rings(tris: np.ndarray, S: int) -> tuple[np.ndarray, np.ndarray]:
     """(S, R, 2): the triangles around each vertex s < S, from triangles (n, 3) of local vertex
     ids, each rotated to (s, b, c) (same orientation) and stored as (b, c); a row repeats its
     first triangle up to R (the largest valence); a vertex on no triangle gets (s, s) (such
-    vertices are never candidates: they only close the rings)."""
+    vertices are never candidates: they only close the rings). Also the valences (S,)."""
     tris = np.asarray(tris, np.int64)
     vert = tris.ravel()
     corner = np.tile(np.arange(3), len(tris))
@@ -517,7 +546,7 @@ def _one_rings(tris: np.ndarray, S: int) -> np.ndarray:
     has = count > 0
     table[has] = rest[first[has]][:, None, :]
     table[vert, col] = rest
-    return table.astype(np.int32)
+    return table.astype(np.int32), count.astype(np.int32)
 
 
 @dataclass(frozen=True)
@@ -539,6 +568,7 @@ class GuardPlan:
     ring           : (S, R, 2) int or None, closed colliders: the triangles around each collider
                      vertex s (its one-ring, padded by repetition) as (s, b, c) counter-clockwise,
                      b and c indices into ``collider_ids``, for the closest-triangle check
+    ring_valence   : (S,) int or None, the number of distinct triangles in each ring
     """
 
     collider_ids: np.ndarray
@@ -553,6 +583,7 @@ class GuardPlan:
     dynamic_points: np.ndarray | None = None
     dynamic_region: np.ndarray | None = None
     ring: np.ndarray | None = None
+    ring_valence: np.ndarray | None = None
 
     @classmethod
     def build(
@@ -697,6 +728,7 @@ class GuardPlan:
         collider_ids = touched
         local = np.searchsorted(collider_ids, cand)
         face_ids, inc = vertex_face_incidence(faces, M, collider_ids)
+        rings_table = None if ring_faces is None else _one_rings(np.searchsorted(collider_ids, faces[ring_faces]), len(collider_ids))
         e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
         reach = float(np.median(np.linalg.norm(e, axis=-1)))
         has_dynamic = dynamic_points is not None and len(dynamic_points) > 0
@@ -712,7 +744,8 @@ class GuardPlan:
             reach_m=reach,
             dynamic_points=dynamic_points if has_dynamic else None,
             dynamic_region=np.searchsorted(collider_ids, dynamic_region_ids) if has_dynamic else None,
-            ring=None if ring_faces is None else _one_rings(np.searchsorted(collider_ids, faces[ring_faces]), len(collider_ids)),
+            ring=rings_table[0] if rings_table else None,
+            ring_valence=rings_table[1] if rings_table else None,
         )
 
     def collider_planes(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
