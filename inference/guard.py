@@ -53,7 +53,7 @@ candidates: q = the closest point on those triangles (``inference.triangles``), 
 vertex normals interpolated at q (Phong), and a point with (p - q) . n_q < 0 moves to
 q + margin n_q / |n_q|; a second pass re-checks the points the first one moved (one that lands
 inside a neighbouring part). The plan therefore holds the candidates' one-rings
-(``GuardPlan.ring``) and their corners. Measured on 01_01 (docs/evaluation.md): 2-4x fewer
+(``GuardPlan.ring``) and their corners. Measured on 01_01 (docs/evaluation.md): 1.2-4.4x fewer
 vertices left inside after the guard; what remains lies mostly in the body's own folds and
 overlaps, where no local push can be right.
 

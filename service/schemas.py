@@ -97,7 +97,7 @@ class DrapeOptions(_Strict):
     guard_check: bool = Field(
         True,
         description="after the guard's push along the nearest body vertex's normal, check each nearby garment vertex "
-        "against the closest body triangle and move it out where it is still inside (2-4x fewer vertices left inside "
+        "against the closest body triangle and move it out where it is still inside (up to ~4x fewer vertices left inside "
         "the body, ~3-4 ms per garment-frame). false: the push alone (~1.4x the throughput)",
     )
 
