@@ -323,7 +323,7 @@ def _push_planes(
             if check and plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0:
                 todo = live
                 for _ in range(REFINE_PASSES):  # later passes: only the points the last one moved
-                    new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, M, margin_m, plan.ring_valence)
+                    new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, plan.ring_valence, M, margin_m)
                     moved = np.flatnonzero((new != res[:, todo]).any(0))
                     res[:, todo] = new
                     todo = todo[moved]
@@ -439,10 +439,11 @@ def _ring_closest(ap, centre, C, other):
 _RING_SLOTS = 6
 
 
-def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, M: int, margin_m: float,
-                  valence: np.ndarray | None = None) -> np.ndarray:
+def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, valence: np.ndarray,
+                  M: int, margin_m: float) -> np.ndarray:
     """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
-    frame-major planes C, Nrm (3, BT*M); ring (M, R, 2) one-ring triangles of the plan vertices.
+    frame-major planes C, Nrm (3, BT*M); ring (M, R, 2) one-ring triangles of the plan vertices
+    and valence (M,) their counts (``GuardPlan.ring``, ``ring_valence``).
 
     The tangent plane of the nearest vertex misjudges points where the surface curves within a
     few millimetres (an elbow pit, the crease of an armpit). Among the one-ring triangles of the
@@ -451,8 +452,6 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
     (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays.
     Returns (3, L) float32.
     """
-    if valence is None:
-        valence = np.full(len(ring), ring.shape[1])
     k = flat.shape[0]
     kr = int(min(REFINE_CANDIDATES, k))
     G = [np.take(C[c], flat) for c in range(3)]
