@@ -264,6 +264,28 @@ def test_collision_zero_beyond_margin_and_cube_at_depth():
     assert collision_energy(cloth, _t(x[None]), _t(pts), _t(nrm)).item() == pytest.approx(MAT.k_collision * 0.001**3, rel=1e-9)
 
 
+def test_training_margin_and_stiffness_override():
+    verts = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float64)
+    cloth = ClothGeometry.from_mesh(verts, [[0, 1, 2]], MAT)
+    pts, nrm = _plane_body()
+    x = _t((verts + [0.0, 0.0, 0.003])[None])  # 3 mm above the plane: outside the 2 mm margin
+    assert collision_energy(cloth, x, _t(pts), _t(nrm)).item() == 0.0
+    wide = cloth.with_collision_stiffness(1e5, margin_m=0.005)
+    assert wide.material.collision_margin_m == 0.005 and cloth.material.collision_margin_m == MAT.collision_margin_m
+    # three vertices 2 mm inside the 5 mm margin: 3 k (0.002)^3
+    assert collision_energy(wide, x, _t(pts), _t(nrm)).item() == pytest.approx(3 * 1e5 * 0.002**3, rel=1e-9)
+    assert cloth.with_collision_stiffness(None) is cloth
+
+
+def test_geometry_to_device_keeps_values():
+    verts, faces = _grid()
+    cloth = ClothGeometry.from_mesh(verts, faces, MAT, torch.float32)
+    moved = cloth.to("cpu")
+    for name in ("faces", "dm_inv", "rest_area_m2", "vertex_mass_kg", "hinges", "k_scale", "rest_dihedral_rad"):
+        assert torch.equal(getattr(moved, name), getattr(cloth, name))
+    assert moved.material == cloth.material
+
+
 def test_signed_distance_candidates_match_full_search():
     rng = np.random.default_rng(4)
     body = rng.normal(size=(2, 300, 3))

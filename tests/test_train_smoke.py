@@ -52,3 +52,39 @@ def test_training_cli_parses_into_the_config(tmp_path):
     record = torch.load(tmp_path / GARMENT / "fit_smoke.pt", weights_only=False)["record"]
     assert record["smoke"] and record["config"]["lr"] == 2e-4 and record["config"]["k_collision"] == 5000.0
     assert record["config"]["max_steps"] == 5  # the smoke overrides
+
+
+def test_checkpoint_pack_round_trip_and_warm_start(tmp_path):
+    """tools/device_checkpoints.py: a packed, unpacked wrinkle checkpoint gives the same model
+    (float32 exactly; float16 within 1e-3 of the displacement), and training continues from it."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from training.train_fit import SMOKE as FIT_SMOKE, FitConfig, train_fit
+    from training.train_wrinkle import SMOKE as WRINKLE_SMOKE, WrinkleConfig, load_wrinkle, train_wrinkle
+
+    spec = importlib.util.spec_from_file_location("device_checkpoints", Path(__file__).resolve().parents[1] / "tools" / "device_checkpoints.py")
+    dc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(dc)
+    ckpt = tmp_path / "ck"
+    train_fit(FitConfig(garment=GARMENT, **FIT_SMOKE), smoke=True, out_dir=ckpt)
+    train_wrinkle(WrinkleConfig(garment=GARMENT, **WRINKLE_SMOKE), smoke=True, out_dir=ckpt)
+    src = ckpt / GARMENT / "wrinkle_smoke.pt"
+    a, rec = load_wrinkle(src)
+    p = torch.tensor([[0.5, 0.8, 0.5, 0.5, 0.5, 0.5]])
+    g = a.gamma_mean[None, None].expand(1, 3, -1) + 0.5 * a.gamma_std[None, None].expand(1, 3, -1)
+    with torch.no_grad():
+        # a non-zero head, so that the comparison sees the weights
+        a.head.weight.normal_(0.0, 0.05, generator=torch.Generator().manual_seed(0))
+        torch.save({**torch.load(src, weights_only=False), "state_dict": a.state_dict()}, src)
+        ref, _ = a(p, g, a.initial_state(1))
+        for half, tol in ((False, 0.0), (True, 1e-3)):
+            dc.pack(src, tmp_path / "w.npz", half)
+            dc.unpack(tmp_path / "w.npz", tmp_path / "w.pt")
+            b, rec_b = load_wrinkle(tmp_path / "w.pt")
+            out, _ = b(p, g, b.initial_state(1))
+            assert rec_b == json.loads(json.dumps(rec))  # tuples come back as lists
+            assert float((out - ref).abs().max()) <= tol * float(ref.abs().max()) + 1e-9
+    more = train_wrinkle(WrinkleConfig(garment=GARMENT, **{**WRINKLE_SMOKE, "init": str(tmp_path / "w.pt")}), smoke=True, out_dir=ckpt)
+    assert more["steps"] == rec["steps"] + WRINKLE_SMOKE["max_steps"] and more["this_run"]["init_steps"] == rec["steps"]

@@ -16,9 +16,11 @@ OPTIONS = {
     "minutes": ("--minutes", "wall-clock training budget, minutes (bank building not counted)"),
     "max_steps": ("--max-steps", "stop after this many steps"),
     "threads": ("--threads", "torch intra-op threads"),
+    "device": ("--device", "torch device of the model and the loss (cpu, cuda)"),
     "init": ("--init", "continue from this checkpoint (warm start)"),
     "k_collision": ("--k-collision", "collision stiffness of the training loss, J/m^3"),
     "collision_cap_m": ("--collision-cap", "collision penalty linear beyond this depth, m"),
+    "collision_margin_m": ("--collision-margin", "collision margin eps of the training loss, m (default: the material's)"),
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
 }
@@ -32,7 +34,7 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
     defaults = {f.name: f.default for f in dataclasses.fields(config_cls)}
     for name, (flag, help_text) in OPTIONS.items():
         if name in defaults:
-            kind = str if name == "init" else int if name in ("max_steps", "threads") else float
+            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads") else float
             p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")
     p.add_argument("--smoke", action="store_true", help=smoke_help)
     p.add_argument("--out", type=Path, default=checkpoint_dir)

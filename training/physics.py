@@ -237,14 +237,26 @@ class ClothGeometry:
     def dtype(self) -> torch.dtype:
         return self.dm_inv.dtype
 
-    def with_collision_stiffness(self, k_collision: float | None, depth_cap_m: float | None = None) -> "ClothGeometry":
+    def with_collision_stiffness(self, k_collision: float | None, depth_cap_m: float | None = None, margin_m: float | None = None) -> "ClothGeometry":
         """The same cloth with k_collision of eq. 5.12 replaced (J/m^3; None keeps the material's)
         and, with ``depth_cap_m``, the penalty continued linearly (force capped at 3 k cap^2)
         beyond that depth below the margin: LBS squeezes (an arm sunk into the torso) leave
         vertices that no displacement can free, and the cubic's unbounded force there swamps the
-        other terms (training only; the physical energy has no cap)."""
-        cloth = self if k_collision is None else replace(self, material=replace(self.material, k_collision=float(k_collision)))
+        other terms. ``margin_m`` replaces eps of eq. 5.12 (metres; None keeps the material's):
+        a wider training margin keeps a network's prediction error outside the body (training
+        only; the physical energy keeps the material's k, eps and no cap)."""
+        material = self.material
+        if k_collision is not None:
+            material = replace(material, k_collision=float(k_collision))
+        if margin_m is not None:
+            material = replace(material, collision_margin_m=float(margin_m))
+        cloth = replace(self, material=material) if material is not self.material else self
         return cloth if depth_cap_m is None else replace(cloth, collision_depth_cap_m=float(depth_cap_m))
+
+    def to(self, device: torch.device | str) -> "ClothGeometry":
+        """The same cloth with its tensors on ``device`` (training on a GPU)."""
+        moved = {f.name: getattr(self, f.name).to(device) for f in fields(self) if isinstance(getattr(self, f.name), torch.Tensor)}
+        return replace(self, **moved)
 
     @property
     def num_vertices(self) -> int:
@@ -327,7 +339,7 @@ def closest_body_vertices(x: torch.Tensor, body_points: torch.Tensor, candidates
         cand = candidates if candidates.ndim == 3 else candidates.expand(B, -1, -1)
         if cand.shape[:2] != (B, V):
             raise ValueError(f"candidates: expected shape (B, {V}, k) or ({V}, k), got {tuple(candidates.shape)}")
-        batch = torch.arange(B)[:, None, None]
+        batch = torch.arange(B, device=x.device)[:, None, None]
         d2 = ((body_points[batch, cand] - x[:, :, None]) ** 2).sum(-1)  # (B, V, k)
         return torch.gather(cand, 2, d2.argmin(dim=-1, keepdim=True))[..., 0]
 
@@ -356,7 +368,7 @@ def body_signed_distances(x: torch.Tensor, body_points: torch.Tensor, body_norma
     if smoothing_m is not None:
         return _blended_planes(x, body_points, body_normals, candidates, smoothing_m)[0]
     closest = closest_body_vertices(x, body_points, candidates)
-    batch = torch.arange(x.shape[0])[:, None]
+    batch = torch.arange(x.shape[0], device=x.device)[:, None]
     return ((x - body_points[batch, closest]) * body_normals[batch, closest]).sum(-1)
 
 
@@ -364,12 +376,12 @@ def _blended_planes(x, body_points, body_normals, candidates, smoothing_m):
     """Soft-min blend of candidate tangent planes: d (B, V) and the blended normal (B, V, 3)."""
     B, V = x.shape[:2]
     if candidates is None:
-        cand = torch.arange(body_points.shape[1]).expand(B, V, -1)
+        cand = torch.arange(body_points.shape[1], device=x.device).expand(B, V, -1)
     else:
         cand = candidates if candidates.ndim == 3 else candidates.expand(B, -1, -1)
         if cand.shape[:2] != (B, V):
             raise ValueError(f"candidates: expected shape (B, {V}, k) or ({V}, k), got {tuple(candidates.shape)}")
-    batch = torch.arange(B)[:, None, None]
+    batch = torch.arange(B, device=x.device)[:, None, None]
     p, n = body_points[batch, cand], body_normals[batch, cand]  # (B, V, k, 3)
     r = x[:, :, None] - p
     w = torch.softmax(-(r * r).sum(-1) / (smoothing_m * smoothing_m), dim=-1)  # (B, V, k)
@@ -427,7 +439,7 @@ def gravity_energy(cloth: ClothGeometry, x: torch.Tensor) -> torch.Tensor:
     x : (B, V, 3) metres ; returns (B,)
     """
     _check_positions(cloth, x)
-    g = torch.tensor(GRAVITY_VECTOR, dtype=x.dtype)
+    g = torch.tensor(GRAVITY_VECTOR, dtype=x.dtype, device=x.device)
     return -(cloth.vertex_mass_kg * (x @ g)).sum(-1)  # eq. 5.11
 
 
@@ -526,14 +538,14 @@ def strain_hessian(cloth: ClothGeometry, x: torch.Tensor, project: bool = True) 
         return a[..., :, None] * b[..., None, :]
 
     gn = m.lame_lambda_pa * outer(jtr, jtr) + 2.0 * m.lame_mu_pa * (outer(j00, j00) + outer(j11, j11) + 2.0 * outer(j01, j01))
-    G = 0.5 * (torch.einsum("bfci,bfcj->bfij", Fg, Fg) - torch.eye(2, dtype=x.dtype))
-    S = m.lame_lambda_pa * (G[..., 0, 0] + G[..., 1, 1])[..., None, None] * torch.eye(2, dtype=x.dtype) + 2.0 * m.lame_mu_pa * G
+    G = 0.5 * (torch.einsum("bfci,bfcj->bfij", Fg, Fg) - torch.eye(2, dtype=x.dtype, device=x.device))
+    S = m.lame_lambda_pa * (G[..., 0, 0] + G[..., 1, 1])[..., None, None] * torch.eye(2, dtype=x.dtype, device=x.device) + 2.0 * m.lame_mu_pa * G
     if project:
         w, U = torch.linalg.eigh(S)
         S = (U * w.clamp(min=0.0)[..., None, :]) @ U.transpose(-1, -2)
     # K[b, f, a, a'] = sum_ij C[f, a, i] S+[b, f, i, j] C[f, a', j]   (geometric stiffness, per corner pair)
     K = torch.einsum("fai,bfij,fcj->bfac", c, S, c)
-    geo = torch.einsum("bfac,ij->bfaicj", K, torch.eye(3, dtype=x.dtype)).reshape(K.shape[:2] + (9, 9))
+    geo = torch.einsum("bfac,ij->bfaicj", K, torch.eye(3, dtype=x.dtype, device=x.device)).reshape(K.shape[:2] + (9, 9))
     return vol * (gn + geo)
 
 
@@ -563,7 +575,7 @@ def collision_hessian(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.
             d, n = _blended_planes(x, body_points, body_normals, candidates, smoothing_m)
         else:
             closest = closest_body_vertices(x, body_points, candidates)
-            batch = torch.arange(x.shape[0])[:, None]
+            batch = torch.arange(x.shape[0], device=x.device)[:, None]
             n = body_normals[batch, closest]
             d = ((x - body_points[batch, closest]) * n).sum(-1)
         depth = torch.clamp(cloth.material.collision_margin_m - d, min=0.0)

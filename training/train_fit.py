@@ -49,6 +49,7 @@ class FitConfig:
     candidates: int = 8  # KD-tree collision candidates per garment vertex (eq. 5.12's d(x))
     k_collision: float | None = TRAIN_K_COLLISION  # eq. 5.12 stiffness of the training loss, J/m^3 (None: the material's)
     collision_cap_m: float | None = None  # training loss: collision penalty linear beyond this depth, m (None: cubic)
+    collision_margin_m: float | None = None  # training loss: eps of eq. 5.12, m (None: the material's 2 mm)
     basis_size: int = 128  # manifold harmonics of the output basis (training.models.OutputBasis)
     hidden: int = 128  # MLP width (thesis ch. 4.3: one hidden layer of 20 was enough with supervision)
     layers: int = 2  # hidden layers
@@ -104,7 +105,7 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     body = BodyModel.load()
     asset = GarmentCatalog.load().get(config.garment)
     cloth = ClothGeometry.from_asset(asset, torch.float32)  # the physical material: metrics
-    train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m)  # the training loss
+    train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m, config.collision_margin_m)  # the training loss
 
     t_bank = time.perf_counter()
     basis = harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +69,7 @@ class WrinkleConfig:
     candidates: int = 8  # KD-tree collision candidates per garment vertex
     k_collision: float | None = TRAIN_K_COLLISION  # eq. 5.12 stiffness of the training loss, J/m^3 (None: the material's)
     collision_cap_m: float | None = 0.005  # training loss: collision penalty linear beyond this depth (ClothGeometry.with_collision_stiffness)
+    collision_margin_m: float | None = None  # training loss: eps of eq. 5.12, m (None: the material's 2 mm)
     basis_size: int = 192  # manifold harmonics of the output basis
     hidden: int = 256  # GRU width (SNUG §5.2.5: 4 GRUs of 256, tanh)
     layers: int = 4
@@ -87,6 +89,7 @@ class WrinkleConfig:
     init: str | None = None  # warm start: a wrinkle.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
     threads: int = 1
+    device: str = "cpu"  # torch device of the model and the loss ("cuda": the banks and poses stay numpy on the CPU)
     log_every: int = 25
 
 
@@ -130,6 +133,10 @@ class WindowBatch:
     body_normals: torch.Tensor  # (B*T, M, 3)
     candidates: torch.Tensor  # (B*T, V, k) int64
 
+    def to(self, device: torch.device | str) -> "WindowBatch":
+        """The same batch on ``device``."""
+        return WindowBatch(*(getattr(self, f.name).to(device) for f in fields(self)))
+
 
 def make_batch(body: BodyModel, bank: ShapeBank, fitted: np.ndarray, motions: MotionBank, shape_idx: np.ndarray, frames: np.ndarray,
                lifter: WindowLifter | None = None) -> WindowBatch:
@@ -155,9 +162,14 @@ def garment_frames(model: WrinkleGRU | None, batch: WindowBatch, weights: torch.
     return x.reshape(B, T, -1, 3)
 
 
-def posed_candidates(body_points: torch.Tensor, x: torch.Tensor, k: int) -> torch.Tensor:
+def posed_candidates(body_points: torch.Tensor, x: torch.Tensor, k: int, chunk: int = 8) -> torch.Tensor:
     """Collision candidates in the posed frames: the k nearest posed (kept) body vertices of each
-    garment vertex, from a KD-tree per frame. body_points (N, M, 3), x (N, V, 3); returns (N, V, k)."""
+    garment vertex, from a KD-tree per frame (on a GPU: exact distances, ``chunk`` frames at a
+    time). body_points (N, M, 3), x (N, V, 3); returns (N, V, k) on their device."""
+    if x.device.type != "cpu":
+        with torch.no_grad():
+            return torch.cat([torch.cdist(x[i:i + chunk].detach(), body_points[i:i + chunk], compute_mode="donot_use_mm_for_euclid_dist").topk(k, dim=-1, largest=False).indices
+                              for i in range(0, len(x), chunk)])
     bp, xp = body_points.detach().numpy(), x.detach().numpy()
     return torch.as_tensor(np.stack([cKDTree(bp[n]).query(xp[n], k=k)[1].reshape(len(xp[n]), k) for n in range(len(bp))]), dtype=torch.int64)
 
@@ -183,9 +195,9 @@ def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: Sha
     with torch.no_grad():
         acc: dict[str, dict[str, float]] = {"learned": {}, "fit_only": {}}
         for s in range(len(bank)):
-            batch = make_batch(body, bank, fitted, motions, np.array([s]), np.arange(T)[None], lifter)
+            batch = make_batch(body, bank, fitted, motions, np.array([s]), np.arange(T)[None], lifter).to(weights.device)
             for name, m in (("learned", model), ("fit_only", None)):
-                x = garment_frames(m, batch, weights, model.initial_state(1) if m is not None else None)
+                x = garment_frames(m, batch, weights, model.initial_state(1).to(weights.device) if m is not None else None)
                 if fresh:
                     batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), batch.candidates.shape[-1])
                 _, terms = snug_loss(cloth, x, batch, 1.0 / motions.fps)
@@ -208,12 +220,13 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     """Train R_L for ``config.garment`` on top of its frozen R_G; write ``out_dir/<garment>/wrinkle.pt``."""
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
+    device = torch.device(config.device)
     rng = np.random.default_rng(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     body = BodyModel.load()
     asset = GarmentCatalog.load().get(config.garment)
-    cloth = ClothGeometry.from_asset(asset, torch.float32)  # the physical material: metrics
-    train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m)  # the training loss
+    cloth = ClothGeometry.from_asset(asset, torch.float32).to(device)  # the physical material: metrics
+    train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m, config.collision_margin_m)  # the training loss
     neutral = body.shape(NEUTRAL_PHENOTYPES[None])
 
     t_bank = time.perf_counter()
@@ -221,7 +234,8 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     fit_model, fit_record = load_fit(fit_path)
     for p in fit_model.parameters():
         p.requires_grad_(False)
-    basis = harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")
+    init_ck = torch.load(Path(config.init), weights_only=False, map_location="cpu") if config.init else None
+    basis = init_ck["basis"] if init_ck else harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")
     bank = ShapeBank.build(body, asset, sample_adult_phenotypes(config.bank_shapes, rng), config.candidates)
     val_phen = np.concatenate([NEUTRAL_PHENOTYPES[None], sample_adult_phenotypes(config.validation_shapes - 1, np.random.default_rng(config.seed + 2), corners=False)])
     val_bank = ShapeBank.build(body, asset, val_phen, config.candidates)
@@ -241,12 +255,13 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     model = WrinkleGRU(basis, gamma_mean, gamma_std, config.hidden, config.layers)
     init_wall_s, init_steps = 0.0, 0
     if config.init:  # warm start; keeps the checkpoint's gamma statistics
-        model, init_record = load_wrinkle(Path(config.init))
+        model, init_record = wrinkle_from_checkpoint(init_ck)
         model.train()
         gamma_mean, gamma_std = model.gamma_mean.numpy(), model.gamma_std.numpy()
         init_wall_s, init_steps = init_record["train_wall_s"], init_record["steps"]
+    model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    weights = torch.as_tensor(asset.skin_weights.astype(np.float32))
+    weights = torch.as_tensor(asset.skin_weights.astype(np.float32)).to(device)
     dt_s = 1.0 / motions.fps
     lifter = WindowLifter(body, bank, motions) if config.lift_arms else None
     val_lifter = WindowLifter(body, val_bank, val_motions) if config.lift_arms else None
@@ -258,6 +273,15 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         log.info("validation of the initial model: learned static %.5f J/frame, inside %.4f",
                  metrics["validation_init"]["learned"]["static_j_per_frame"], metrics["validation_init"]["learned"]["inside_fraction"])
 
+    def next_batch() -> WindowBatch:
+        starts = rng.choice(motions.windows, config.batch_size)
+        shape_idx = rng.integers(0, len(bank), config.batch_size)  # a new random shape per window
+        return make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, WINDOW_FRAMES), lifter)
+
+    # on a GPU the numpy posing of the next batch (FK, arm lifting) overlaps this step's GPU work;
+    # the batches and their order are those of the sequential loop
+    prefetch = ThreadPoolExecutor(1) if device.type != "cpu" else None
+    pending = prefetch.submit(next_batch) if prefetch else None
     budget_s = config.minutes * 60.0
     t0 = time.perf_counter()
     step, history = 0, []
@@ -265,10 +289,12 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         progress = max((time.perf_counter() - t0) / budget_s, step / config.max_steps)
         for g in opt.param_groups:  # SNUG §5.3.1: 1e-3, then 1e-4
             g["lr"] = config.lr if progress < config.lr_drop else config.lr_final
-        starts = rng.choice(motions.windows, config.batch_size)
-        shape_idx = rng.integers(0, len(bank), config.batch_size)  # a new random shape per window
-        batch = make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, WINDOW_FRAMES), lifter)
-        h0 = model.initial_state(config.batch_size, config.h0_std, gen)  # h0 ~ N(0, 0.1)
+        if prefetch:
+            batch = pending.result().to(device)
+            pending = prefetch.submit(next_batch)
+        else:
+            batch = next_batch()
+        h0 = model.initial_state(config.batch_size, config.h0_std, gen).to(device)  # h0 ~ N(0, 0.1)
         x = garment_frames(model, batch, weights, h0)
         if config.fresh_candidates:
             batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
@@ -282,6 +308,8 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
             history.append({"step": step, "seconds": time.perf_counter() - t0, "loss_j": float(loss.detach()), **{k: float(v.detach().mean()) for k, v in terms.items()}})
             log.info("step %d %.0f s: L %.5f J (%s)", step, history[-1]["seconds"], float(loss.detach()), ", ".join(f"{k} {float(v.detach().mean()):.5f}" for k, v in terms.items()))
     wall_s = time.perf_counter() - t0
+    if prefetch:
+        prefetch.shutdown(cancel_futures=True)
 
     model.eval()
     t_val = time.perf_counter()
@@ -309,7 +337,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     }
     path = out_dir / config.garment / ("wrinkle_smoke.pt" if smoke else "wrinkle.pt")
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"record": record, "state_dict": model.state_dict(), "basis": basis, "gamma_mean": gamma_mean, "gamma_std": gamma_std,
+    torch.save({"record": record, "state_dict": {k: v.cpu() for k, v in model.state_dict().items()}, "basis": basis, "gamma_mean": gamma_mean, "gamma_std": gamma_std,
                 "hidden": config.hidden, "layers": config.layers}, path)
     log.info("wrote %s (%d steps, %.1f min)", path, step, wall_s / 60)
     return record
@@ -317,7 +345,11 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
 
 def load_wrinkle(path: Path) -> tuple[WrinkleGRU, dict]:
     """A trained R_L and its record from a ``wrinkle.pt`` checkpoint."""
-    ck = torch.load(path, weights_only=False)
+    return wrinkle_from_checkpoint(torch.load(path, weights_only=False, map_location="cpu"))
+
+
+def wrinkle_from_checkpoint(ck: dict) -> tuple[WrinkleGRU, dict]:
+    """A trained R_L and its record from a loaded ``wrinkle.pt`` checkpoint dict."""
     model = WrinkleGRU(ck["basis"], ck["gamma_mean"], ck["gamma_std"], ck["hidden"], ck["layers"])
     model.load_state_dict(ck["state_dict"])
     return model.eval(), ck["record"]
