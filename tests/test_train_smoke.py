@@ -88,3 +88,17 @@ def test_checkpoint_pack_round_trip_and_warm_start(tmp_path):
             assert float((out - ref).abs().max()) <= tol * float(ref.abs().max()) + 1e-9
     more = train_wrinkle(WrinkleConfig(garment=GARMENT, **{**WRINKLE_SMOKE, "init": str(tmp_path / "w.pt")}), smoke=True, out_dir=ckpt)
     assert more["steps"] == rec["steps"] + WRINKLE_SMOKE["max_steps"] and more["this_run"]["init_steps"] == rec["steps"]
+
+
+def test_pose_workers_give_the_sequential_batches(tmp_path):
+    """Posing the next batches in worker processes (``--pose-workers``) trains on the same
+    batches, in the same order, as posing them in turn: the same losses (to float32 rounding:
+    the workers' BLAS may sum in another order)."""
+    from training.train_fit import SMOKE as FIT_SMOKE, FitConfig, train_fit
+    from training.train_wrinkle import SMOKE as WRINKLE_SMOKE, WrinkleConfig, train_wrinkle
+
+    train_fit(FitConfig(garment=GARMENT, **FIT_SMOKE), smoke=True, out_dir=tmp_path)
+    runs = [train_wrinkle(WrinkleConfig(garment=GARMENT, **{**WRINKLE_SMOKE, "pose_workers": n}), smoke=True, out_dir=tmp_path) for n in (0, 2)]
+    losses = [[h["loss_j"] for h in r["history"]] for r in runs]
+    assert len(losses[0]) == WRINKLE_SMOKE["max_steps"]
+    assert losses[1] == pytest.approx(losses[0], rel=1e-4)

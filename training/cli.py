@@ -17,6 +17,7 @@ OPTIONS = {
     "max_steps": ("--max-steps", "stop after this many steps"),
     "threads": ("--threads", "torch intra-op threads"),
     "device": ("--device", "torch device of the model and the loss (cpu, cuda)"),
+    "pose_workers": ("--pose-workers", "processes that pose the next batches while one trains (0: in turn)"),
     "init": ("--init", "continue from this checkpoint (warm start)"),
     "k_collision": ("--k-collision", "collision stiffness of the training loss, J/m^3"),
     "collision_cap_m": ("--collision-cap", "collision penalty linear beyond this depth, m"),
@@ -34,7 +35,7 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
     defaults = {f.name: f.default for f in dataclasses.fields(config_cls)}
     for name, (flag, help_text) in OPTIONS.items():
         if name in defaults:
-            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads") else float
+            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers") else float
             p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")
     p.add_argument("--smoke", action="store_true", help=smoke_help)
     p.add_argument("--out", type=Path, default=checkpoint_dir)
