@@ -65,12 +65,18 @@ class FitConfig:
     init: str | None = None  # warm start: a fit.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
     threads: int = 1  # torch intra-op threads (the CPU is shared)
+    device: str = "cpu"  # torch device of the model and the loss (the held-out evaluation runs on the CPU)
     log_every: int = 50
 
 
-def fresh_candidates(trees: list[cKDTree], shape_idx: np.ndarray, x: torch.Tensor, k: int) -> torch.Tensor:
+def fresh_candidates(trees: list[cKDTree], shape_idx: np.ndarray, x: torch.Tensor, k: int, body_points: torch.Tensor | None = None) -> torch.Tensor:
     """Collision candidates at the current garment positions x (B, V, 3): the k nearest kept
-    body vertices of each bank shape's KD-tree ``trees[shape_idx[b]]``, (B, V, k) int64."""
+    body vertices of each bank shape's KD-tree ``trees[shape_idx[b]]``, (B, V, k) int64.
+    On a GPU, ``body_points`` (B, M, 3) of these shapes replace the trees (all distances,
+    ``training.train_wrinkle.posed_candidates``)."""
+    if x.device.type != "cpu":
+        from training.train_wrinkle import posed_candidates
+        return posed_candidates(body_points, x, k)
     pts = x.detach().numpy()
     return torch.as_tensor(np.stack([trees[i].query(pts[b], k=k)[1].reshape(len(pts[b]), k) for b, i in enumerate(shape_idx)]), dtype=torch.int64)
 
@@ -101,11 +107,12 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     """Train R_G for ``config.garment``; write ``out_dir/<garment>/fit.pt``; return the record."""
     torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
+    device = torch.device(config.device)
     rng = np.random.default_rng(config.seed)
     body = BodyModel.load()
     asset = GarmentCatalog.load().get(config.garment)
     cloth = ClothGeometry.from_asset(asset, torch.float32)  # the physical material: metrics
-    train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m, config.collision_margin_m)  # the training loss
+    train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m, config.collision_margin_m).to(device)  # the training loss
 
     t_bank = time.perf_counter()
     basis = harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")
@@ -120,12 +127,13 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         init_model, init_record = load_fit(Path(config.init))
         model.load_state_dict(init_model.state_dict())
         init_wall_s, init_steps = init_record["train_wall_s"], init_record["steps"]
-    trees = [cKDTree(p) for p in bank.body_points] if config.fresh_candidates else None
+    trees = [cKDTree(p) for p in bank.body_points] if config.fresh_candidates and device.type == "cpu" else None
+    model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    P = torch.as_tensor(bank.phenotypes)
-    X0 = torch.as_tensor(bank.retarget)
-    BP, BN = torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals)
-    C = torch.as_tensor(bank.candidates.astype(np.int64))
+    P = torch.as_tensor(bank.phenotypes).to(device)
+    X0 = torch.as_tensor(bank.retarget).to(device)
+    BP, BN = torch.as_tensor(bank.body_points).to(device), torch.as_tensor(bank.body_normals).to(device)
+    C = torch.as_tensor(bank.candidates.astype(np.int64)).to(device)
 
     budget_s = config.minutes * 60.0
     t0 = time.perf_counter()
@@ -135,9 +143,9 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         for g in opt.param_groups:  # SNUG §5.3.1: lr 1e-3, then 1e-4
             g["lr"] = config.lr if progress < config.lr_drop else config.lr_final
         idx_np = rng.integers(0, len(bank), config.batch_size)
-        idx = torch.as_tensor(idx_np)
+        idx = torch.as_tensor(idx_np).to(device)
         x = X0[idx] + model(P[idx])  # eq. 4.2 without R_L: retarget fit + R_G
-        cand = fresh_candidates(trees, idx_np, x, config.candidates) if trees is not None else C[idx]
+        cand = fresh_candidates(trees, idx_np, x, config.candidates, BP[idx]) if config.fresh_candidates else C[idx]
         terms = energy_terms(train_cloth, x, BP[idx], BN[idx], cand)
         loss = sum(terms.values()).mean()  # L_static, eq. 5.7
         opt.zero_grad()
@@ -150,7 +158,7 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
             log.info("step %d %.0f s: L_static %.5f J (%s)", step, history[-1]["seconds"], float(loss.detach()), ", ".join(f"{k} {float(v.detach().mean()):.4f}" for k, v in terms.items()))
     wall_s = time.perf_counter() - t0
 
-    model.eval()
+    model.eval().cpu()
     metrics = {"held_out_learned": evaluate_fit(model, cloth, held_out), "held_out_retarget": evaluate_fit(None, cloth, held_out)}
     log.info("held-out static energy: learned %.5f J vs retarget %.5f J; distance to retarget %.2f cm",
              metrics["held_out_learned"]["static_j"], metrics["held_out_retarget"]["static_j"], metrics["held_out_learned"]["distance_to_retarget_cm_mean"])
