@@ -291,24 +291,23 @@ def linear_blend_skinning(rest_vertices: np.ndarray, weights: np.ndarray, transf
     returns       : (B, T, V, 3) float32
 
     Computed coordinate-major: A[t, i, k, v] = sum_j T[t, j, i, k] w[v, j] is one BLAS product
-    per block of frames over the bones that carry weight, then v'[t, i, v] = sum_k A[t, i, k, v]
-    x[t, k, v] + A[t, i, 3, v] runs over contiguous rows of V (2-4x faster than the vertex-major
-    form; measured in bench/bench_learned.py).
+    per block of frames, then v'[t, i, v] = sum_k A[t, i, k, v] x[t, k, v] + A[t, i, 3, v] runs
+    over contiguous rows of V (2-4x faster than the vertex-major form; measured in
+    bench/bench_learned.py and docs/benchmarks.md).
     """
     B, T, J = transforms.shape[:3]
     V = weights.shape[0]
     per_frame = rest_vertices.ndim == 4
     out = np.empty((B, T, V, 3), np.float32)
-    bones = np.flatnonzero(np.any(weights != 0, axis=0))
-    wt = np.ascontiguousarray(np.asarray(weights, np.float32)[:, bones].T)  # (Jw, V)
+    wt = np.asarray(weights, np.float32).T  # (J, V), a transposed view (BLAS reads it as is)
     step = max(1, _LBS_BLOCK // max(V, 1))
     for b in range(B):
         shared = None if per_frame else np.ascontiguousarray(rest_vertices[b].T, np.float32)[None]  # (1, 3, V)
         for t0 in range(0, T, step):  # blocks of frames keep A (frames x 12 x V) in cache
             t1 = min(T, t0 + step)
             n = t1 - t0
-            Tm = transforms[b, t0:t1][:, bones, :3, :].astype(np.float32).reshape(n, len(bones), 12).transpose(0, 2, 1)
-            A = np.matmul(Tm.reshape(n * 12, len(bones)), wt).reshape(n, 3, 4, V)
+            Tm = transforms[b, t0:t1, :, :3, :].astype(np.float32).reshape(n, J, 12).transpose(0, 2, 1)
+            A = np.matmul(Tm.reshape(n * 12, J), wt).reshape(n, 3, 4, V)
             x = shared if shared is not None else np.ascontiguousarray(rest_vertices[b, t0:t1].transpose(0, 2, 1), np.float32)  # (n, 3, V)
             res = A[:, :, 3].copy()  # (n, 3, V)
             tmp = np.empty_like(res)
