@@ -36,6 +36,8 @@ class Settings(BaseSettings):
     # scheduler that merges compatible queued requests into batches.
     workers: int = Field(2, ge=1, le=64, description="inference workers")
     worker_mode: Literal["process", "thread"] = Field("process", description="process: crash-isolated workers; thread: in the API process")
+    worker_blas_threads: int = Field(1, ge=1, le=64, description="BLAS/OpenMP threads in each worker process (the workers are the parallelism); "
+                                     "set for the worker processes' server when the first worker starts")
     max_batch: int = Field(8, ge=1, le=256, description="requests merged into one batch (1: batching off)")
     max_wait_ms: float = Field(5.0, ge=0, le=1000, description="how long a batch waits for more requests once a worker is free")
     max_queue: int = Field(32, ge=0, description="requests queued for a worker before 503 + Retry-After")

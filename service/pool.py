@@ -17,6 +17,7 @@ import itertools
 import logging
 import math
 import multiprocessing
+import os
 import threading
 import time
 from collections import deque
@@ -55,7 +56,7 @@ class ProcessWorker:
     def start(self) -> None:
         from service.worker import serve_pipe
 
-        ctx = _context()
+        ctx = _context(self.settings.worker_blas_threads)
         parent, child = ctx.Pipe()
         self.proc = ctx.Process(target=serve_pipe, args=(child, self.settings), name=f"tryon-worker-{self.index}", daemon=True)
         self.proc.start()
@@ -111,11 +112,19 @@ class ProcessWorker:
         self.kill()
 
 
-def _context():
+def _context(blas_threads: int = 1):
     """forkserver: workers fork from a clean server process that has imported the pipeline once
-    (no threads or event loop of the API inherited, unlike fork; ~10x faster starts than spawn)."""
+    (no threads or event loop of the API inherited, unlike fork; ~10x faster starts than spawn).
+
+    The server process, and so every worker, gets ``blas_threads`` BLAS/OpenMP threads (the
+    environment it is started with; the first call decides). With OpenBLAS's default of one
+    thread per core, each worker's matrix products woke threads that then competed with the
+    single-threaded stages on the same cores: the 300-frame T-shirt took 5.0 s over HTTP instead
+    of 4.3 s, with the arms and the guard 10-40 % slower (docs/benchmarks.md)."""
     global _CONTEXT
     if _CONTEXT is None:
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[var] = str(blas_threads)
         _CONTEXT = multiprocessing.get_context("forkserver")
         _CONTEXT.set_forkserver_preload(["service.worker", "service.runtime"])
     return _CONTEXT

@@ -198,3 +198,37 @@ def test_expected_wait_over_the_limit_answers_503_at_once():
     results = asyncio.run(main())
     refused = [r for r in results if isinstance(r, ProblemException)]
     assert 3 <= len(refused) <= 6 and all(r.status == 503 and "expected wait" in r.detail for r in refused)
+
+
+def _child_blas_env(conn) -> None:
+    """Forkserver child: report the thread variables it was started with."""
+    import os
+
+    conn.send([os.environ.get(v) for v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")])
+    conn.close()
+
+
+def _forkserver_blas_env(threads: int) -> list:
+    from service.pool import _context
+
+    ctx = _context(threads)
+    parent, child = ctx.Pipe()
+    p = ctx.Process(target=_child_blas_env, args=(child,))
+    p.start()
+    got = parent.recv()
+    p.join(30)
+    return got
+
+
+def test_worker_processes_get_the_configured_blas_threads():
+    """Process workers fork from a server started with ``worker_blas_threads`` BLAS/OpenMP threads
+    (fresh interpreter: the first start decides)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = "import json, tests.test_pool as t; print(json.dumps(t._forkserver_blas_env(3)))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=120, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == ["3", "3", "3"]
+    assert Settings().worker_blas_threads == 1
