@@ -102,3 +102,17 @@ def test_pose_workers_give_the_sequential_batches(tmp_path):
     losses = [[h["loss_j"] for h in r["history"]] for r in runs]
     assert len(losses[0]) == WRINKLE_SMOKE["max_steps"]
     assert losses[1] == pytest.approx(losses[0], rel=1e-4)
+
+
+def test_matrix_candidates_match_the_kd_tree():
+    """The GPU's candidate search (distances by matrix products) finds the KD-tree's k nearest
+    body vertices (as sets; float32 rounding may swap exact near ties at the k-th place)."""
+    from training.train_wrinkle import matrix_candidates, posed_candidates
+
+    g = torch.Generator().manual_seed(0)
+    body = torch.rand(5, 2000, 3, generator=g) * torch.tensor([0.4, 0.3, 1.7])
+    x = body[:, :700] + 0.01 * torch.randn(5, 700, 3, generator=g)
+    a = posed_candidates(body, x, 8).sort(-1).values
+    b = matrix_candidates(body, x, 8, chunk=2).sort(-1).values
+    assert a.shape == b.shape == (5, 700, 8)
+    assert (a == b).all(-1).float().mean() > 0.99
