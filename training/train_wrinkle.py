@@ -288,9 +288,6 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         model.train()
         gamma_mean, gamma_std = model.gamma_mean.numpy(), model.gamma_std.numpy()
         init_wall_s, init_steps = init_record["train_wall_s"], init_record["steps"]
-    model.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    weights = torch.as_tensor(asset.skin_weights.astype(np.float32)).to(device)
     dt_s = 1.0 / motions.fps
     lifter = WindowLifter(body, bank, motions) if config.lift_arms else None
     val_lifter = WindowLifter(body, val_bank, val_motions) if config.lift_arms else None
@@ -299,6 +296,9 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         global _POSE_CONTEXT
         _POSE_CONTEXT = (body, bank, motions, lifter)
         pool = ProcessPoolExecutor(config.pose_workers, mp_context=multiprocessing.get_context("fork"))
+    model.to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    weights = torch.as_tensor(asset.skin_weights.astype(np.float32)).to(device)
     cloth = cloth.to(device)
     train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m, config.collision_margin_m)  # the training loss
     metrics: dict = {}
