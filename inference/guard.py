@@ -73,10 +73,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError, InputValueError
+from inference.mesh import face_normals, major_components, vertex_face_incidence, vertex_normals  # noqa: F401 (re-exported)
+from inference.repair import exact_repair
 from inference.triangles import closest_barycentrics
 
 # Default clearance between the body and the innermost garment (DESIGN.md §3: 2–4 mm).
@@ -116,65 +117,11 @@ _FARTHER_M = 0.02
 REFINE_CANDIDATES = 3
 # Passes of that check; each later one revisits only the points the previous one moved.
 REFINE_PASSES = 2
-# Mesh components smaller than this fraction of the vertices are accessories (anny's eyes, teeth).
-MAJOR_COMPONENT_FRACTION = 0.1
 # Extra candidates are looked up this far along the rest normal (the other side of a crease).
 DEFAULT_AHEAD_M = 0.015
 # Skin-aware plans look for the nearest collider vertices of another bone among this many nearest
 # ones first (a KD-tree per bone only for the points where fewer than k_skin are there).
 _SKIN_SCAN = 32
-
-
-# ------------------------------------------------------------------------------ normals
-def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True) -> np.ndarray:
-    """Face normals n_f = (v1 - v0) x (v2 - v0) (length = 2 * area) or unit.
-
-    verts : (..., V, 3) float32, metres ; faces : (F, 3) int, counter-clockwise seen from outside
-    returns (..., F, 3) float32
-    """
-    tri = verts[..., faces, :]  # (..., F, 3, 3)
-    n = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
-    if unit:
-        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
-    return n.astype(np.float32)
-
-
-def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.ndarray | None = None) -> tuple[np.ndarray, sp.csr_matrix]:
-    """Faces touching ``vertex_ids`` and the (S, Fs) 0/1 incidence matrix between them.
-
-    faces      : (F, 3) int ; vertex_ids : (S,) int, default all vertices
-    returns    : face_ids (Fs,) into ``faces``, incidence (S, Fs) float32 CSR
-    """
-    faces = np.asarray(faces, np.int64)
-    if vertex_ids is None:
-        vertex_ids = np.arange(num_vertices)
-    local = np.full(num_vertices, -1, np.int64)
-    local[vertex_ids] = np.arange(len(vertex_ids))
-    touched = (local[faces] >= 0).any(1)
-    face_ids = np.flatnonzero(touched)
-    lf = local[faces[face_ids]]  # (Fs, 3), -1 where the corner is not in the subset
-    rows = lf.ravel()
-    cols = np.repeat(np.arange(len(face_ids)), 3)
-    keep = rows >= 0
-    inc = sp.csr_matrix((np.ones(keep.sum(), np.float32), (rows[keep], cols[keep])), shape=(len(vertex_ids), len(face_ids)))
-    return face_ids, inc
-
-
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals n_v = normalise(sum_{f ∋ v} (v1 - v0) x (v2 - v0)).
-
-    verts : (..., V, 3) float32, metres ; faces : (F, 3) int
-    returns (..., V, 3) float32 (zero for vertices without faces)
-    """
-    V = verts.shape[-2]
-    lead = verts.shape[:-2]
-    _, inc = vertex_face_incidence(faces, V)
-    fn = face_normals(verts.reshape((-1, V, 3)), faces, unit=False)  # (L, F, 3)
-    L, F = fn.shape[:2]
-    # n[v, (l, c)] = sum_f inc[v, f] fn[l, f, c]
-    n = (inc @ fn.transpose(1, 0, 2).reshape(F, L * 3)).reshape(V, L, 3).transpose(1, 0, 2)
-    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
-    return n.reshape(lead + (V, 3)).astype(np.float32)
 
 
 # ------------------------------------------------------------------------------ push
@@ -500,17 +447,6 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
 def _gather(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """a (B, M, 3), idx (B, N) -> (B, N, 3)."""
     return np.take_along_axis(a, idx[..., None], axis=1)
-
-
-def major_components(faces: np.ndarray, num_vertices: int, min_fraction: float = MAJOR_COMPONENT_FRACTION) -> np.ndarray:
-    """(V,) bool: vertices of the edge-connected components holding >= min_fraction of the
-    vertices (anny: the skin, not the eyes and teeth, separate small meshes in the head)."""
-    faces = np.asarray(faces, np.int64)
-    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    g = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(num_vertices, num_vertices))
-    _, label = connected_components(g, directed=False)
-    size = np.bincount(label)
-    return size[label] >= min_fraction * num_vertices
 
 
 def boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
@@ -852,6 +788,7 @@ class LayerPlans:
 
     body: list[GuardPlan]
     inner: list[list[GuardPlan]]
+    skin: np.ndarray | None = None  # (Vb,) bool: the body's major components (``exact_repair``)
 
     @classmethod
     def build(
@@ -877,7 +814,7 @@ class LayerPlans:
             for i, g in enumerate(layers_rest)
         ]
         inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] for i in range(len(layers_rest))]
-        return cls(body=body, inner=inner)
+        return cls(body=body, inner=inner, skin=major_components(body_faces, np.shape(body_rest)[-2]))
 
 
 def guard_layers(
@@ -887,21 +824,30 @@ def guard_layers(
     body_margin_m: float = DEFAULT_MARGIN_M,
     layer_margin_m: float = DEFAULT_LAYER_MARGIN_M,
     check: bool = True,
+    exact: bool = False,
+    body_faces: np.ndarray | None = None,
 ) -> list[np.ndarray]:
     """Guard a stack of garments, innermost first (see the module docstring).
 
     layer i: p_i <- guard(p_i, body, margin = body_margin_m + i * layer_margin_m)
+             p_i <- exact_repair(p_i, body, margin as above)           (``exact``)
              p_i <- guard(p_i, p_j, margin = layer_margin_m) for j = 0 .. i-1 (guarded p_j)
     layers : each (B, T, N_i, 3) float32, metres ; body : (B, T, Vb, 3) float32, metres
     check  : the closest-triangle check against the body (module docstring; 3-4 ms per
              garment-frame for 5k vertices)
+    exact  : then move every point still inside the body, by the exact winding number, to the
+             outside (``inference.repair``; needs the closed body's ``body_faces``)
     returns: list of (B, T, N_i, 3) float32
     """
     if len(layers) != len(plans.body):
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
+    if exact and body_faces is None:
+        raise InputValueError("body_faces", "the exact repair needs the body's faces")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
         p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m, iterations=GUARD_ITERATIONS, check=check)
+        if exact:
+            p = exact_repair(p, body, body_faces, body_margin_m + i * layer_margin_m, skin=plans.skin)[0]
         for j in range(i):
             p = guard(p, out[j], plans.inner[i][j], layer_margin_m)
         out.append(p)

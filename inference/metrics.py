@@ -1,22 +1,9 @@
 """Evaluation metrics (DESIGN.md §5): one implementation for tests, training and bench.
 
-Inside test. The posed body is a closed, outward-oriented triangle mesh that intersects itself
-under LBS, so "inside" means a winding number >= 1 (generalised winding number > 0.5), not
-the parity of ray crossings and not a closest-face sign (``trimesh.contains`` misjudges points
-inside two overlapping parts). For a closed mesh the winding number is an integer and equals the
-signed number of crossings of any ray from the point:
-
-    w(p) = sum over faces f hit by the ray p + t e_y (t > 0) of sign(n_f . e_y)
-
-(an outward face is left through, +1, or entered, -1). ``winding_numbers`` counts these exactly
-in float64, vectorised over a 2-D grid of the faces projected along the ray (x, z): a point only
-tests the faces binned in its grid cell. Point-in-projected-triangle uses edge functions that
-are evaluated from the edge's two vertices in canonical (lower index first) order, so the two
-faces sharing an edge compute the bitwise same value and a ray through the edge is counted
-once (ties go to the left of the canonical edge). Only rays through a projected vertex, or
-points on the surface, are ambiguous (measure zero). Cost per frame for 5k points on
-the 13,718-vertex body (~20 ms measured, bench/bench_guard.py); exact, unlike a fast-multipole
-approximation (libigl's fast winding number took 65-100 ms on the same points).
+Inside test: a winding number >= 1 against the posed closed body (``inference.winding``: exact
+signed ray crossings, not the parity of crossings and not a closest-face sign, which misjudge
+points inside two overlapping parts; exact, unlike libigl's fast winding number, which took
+65-100 ms per frame on the same points).
 
 Distances (``unsigned_distance``) use libigl's AABB point-mesh distance (exact).
 Self-intersections: a skin vertex is in self-intersection when the point 1 mm inside it along
@@ -34,16 +21,13 @@ from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
 from inference.guard import major_components, vertex_normals
+from inference.winding import winding_numbers
 
 # Offset of the self-intersection probe inside a skin vertex, metres (thinner than any limb,
 # thicker than float32 noise).
 SELF_INTERSECTION_PROBE_M = 0.001
 # HOOD-style collision threshold: a garment vertex closer than this to the body (or inside).
 HOOD_THRESHOLD_M = 0.001
-# Grid cell of the ray-crossing count, in multiples of the median edge length.
-_CELL_EDGES = 1.5
-# Candidate (point, face) pairs evaluated at once; bounds memory (~130 bytes per pair).
-_PAIR_BLOCK = 2_000_000
 
 
 # ------------------------------------------------------------------------------ checks
@@ -62,120 +46,6 @@ def _faces(faces: np.ndarray, num_vertices: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ inside
-def winding_numbers(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Winding number of a closed mesh at each point, by signed ray crossings (see module doc).
-
-    points : (B, N, 3) float, metres
-    verts  : (B, V, 3) float, metres, closed mesh with outward (counter-clockwise) faces
-    faces  : (F, 3) int
-    returns: (B, N) int32 (0 outside, 1 inside, 2 inside two overlapping parts, ...)
-    """
-    points = _frames("points", points, 3)
-    verts = _frames("verts", verts, 3)
-    B, N = points.shape[:2]
-    if verts.shape[0] != B:
-        raise InputShapeError("verts", f"({B}, V, 3)", verts.shape)
-    faces = _faces(faces, verts.shape[1])
-    out = np.empty((B, N), np.int32)
-    for b0 in range(0, B, _FRAME_BLOCK):  # blocks of frames bound the memory of the face bins
-        out[b0 : b0 + _FRAME_BLOCK] = _winding_block(points[b0 : b0 + _FRAME_BLOCK], verts[b0 : b0 + _FRAME_BLOCK], faces)
-    return out
-
-
-# Frames per block in ``winding_numbers``.
-_FRAME_BLOCK = 16
-
-
-def _winding_block(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    B, N = points.shape[:2]
-    F = len(faces)
-    p = points.astype(np.float64).reshape(B * N, 3)
-    tri = verts.astype(np.float64)[:, faces]  # (B, F, 3 corners, 3)
-    u, v, y = tri[..., 0], tri[..., 2], tri[..., 1]  # project along +y onto (u, v) = (x, z)
-    # A2 = twice the signed projected area; n_y = -A2, so a crossing counts -sign(A2)
-    A2 = (u[..., 1] - u[..., 0]) * (v[..., 2] - v[..., 0]) - (v[..., 1] - v[..., 0]) * (u[..., 2] - u[..., 0])
-
-    # grid over the projected mesh: each face binned into the cells its bounding box covers
-    h = _CELL_EDGES * float(np.median(np.linalg.norm(tri[0, :, 1] - tri[0, :, 0], axis=-1)))
-    umin, umax, vmin, vmax = u.min(-1), u.max(-1), v.min(-1), v.max(-1)  # (B, F)
-    lo = np.stack([umin.min(1), vmin.min(1)], -1)  # (B, 2): each frame's own grid origin
-    extent = np.stack([umax.max(1), vmax.max(1)], -1) - lo
-    ncell = np.floor(extent.max(0) / h).astype(np.int64) + 1
-    i0 = np.floor((umin - lo[:, :1]) / h).astype(np.int64)
-    i1 = np.floor((umax - lo[:, :1]) / h).astype(np.int64)
-    j0 = np.floor((vmin - lo[:, 1:]) / h).astype(np.int64)
-    j1 = np.floor((vmax - lo[:, 1:]) / h).astype(np.int64)
-    wj = (j1 - j0 + 1).ravel()
-    count = np.where(A2.ravel() != 0, (i1 - i0 + 1).ravel() * wj, 0)  # zero-area faces never count
-    face = np.repeat(np.arange(B * F), count)  # (pairs,) frame-major face id b*F + f
-    r = np.arange(len(face)) - np.repeat(np.cumsum(count) - count, count)
-    cell_of = (np.repeat(i0.ravel(), count) + r // np.repeat(wj, count)) * ncell[1] + np.repeat(j0.ravel(), count) + r % np.repeat(wj, count)
-    cells = ncell[0] * ncell[1]
-    key = face // F * cells + cell_of
-    order = np.argsort(key, kind="stable")
-    cell_face = face[order]
-    start = np.concatenate([[0], np.cumsum(np.bincount(key, minlength=B * cells))])
-
-    # each point against the faces of its cell
-    plo = np.repeat(lo, N, axis=0)
-    pi = np.floor((p[:, 0] - plo[:, 0]) / h).astype(np.int64)
-    pj = np.floor((p[:, 2] - plo[:, 1]) / h).astype(np.int64)
-    inside_grid = (pi >= 0) & (pi < ncell[0]) & (pj >= 0) & (pj < ncell[1])
-    pkey = np.repeat(np.arange(B), N) * cells + np.clip(pi, 0, ncell[0] - 1) * ncell[1] + np.clip(pj, 0, ncell[1] - 1)
-    pcount = np.where(inside_grid, start[pkey + 1] - start[pkey], 0)
-
-    # per-face data: canonical edges k (corner k -> k+1), flipped where the index order is reversed
-    nxt = [1, 2, 0]
-    flip = faces > faces[:, nxt]  # (F, 3)
-    lo_c = np.where(flip, np.array(nxt), np.arange(3))  # corner of the canonical edge start
-    hi_c = np.where(flip, np.arange(3), np.array(nxt))
-    ar = np.arange(F)[:, None]
-    data = np.concatenate(
-        [
-            u[:, ar, lo_c], v[:, ar, lo_c],  # canonical edge start (B, F, 3) each
-            u[:, ar, hi_c] - u[:, ar, lo_c], v[:, ar, hi_c] - v[:, ar, lo_c],  # canonical edge vectors
-            y[..., [2, 0, 1]],  # depth of the corner opposite edge k
-            A2[..., None],
-        ],
-        axis=-1,
-    ).reshape(B * F, 16)
-    flip_f = np.broadcast_to(flip, (B, F, 3)).reshape(B * F, 3)
-    # cheap pre-test: the projected bounding box holds p and the face reaches above p
-    umin, umax, vmin, vmax, ymax = (a.ravel() for a in (umin, umax, vmin, vmax, y.max(-1)))
-    p_u, p_v, p_y = (np.ascontiguousarray(p[:, c]) for c in (0, 2, 1))
-
-    w = np.zeros(B * N, np.int64)
-    pts_idx = np.flatnonzero(pcount)
-    csum = np.cumsum(pcount[pts_idx])
-    # blocks of points with at most _PAIR_BLOCK candidate pairs
-    bounds = np.searchsorted(csum, np.arange(0, csum[-1] if len(csum) else 0, _PAIR_BLOCK), side="right")
-    bounds = np.unique(np.concatenate([[0], bounds, [len(pts_idx)]]))
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        idx = pts_idx[a:b]
-        pc = pcount[idx]
-        pt = np.repeat(idx, pc)
-        # fid = cell_face[start[cell of p] + 0 .. pc-1] for each point (ragged arange)
-        fid = np.take(cell_face, np.repeat(start[pkey[idx]] - (np.cumsum(pc) - pc), pc) + np.arange(len(pt)))
-        pu, pv, py = (np.repeat(a[idx], pc) for a in (p_u, p_v, p_y))
-        keep = np.flatnonzero(
-            (np.take(umin, fid) <= pu) & (pu <= np.take(umax, fid)) & (np.take(vmin, fid) <= pv) & (pv <= np.take(vmax, fid)) & (np.take(ymax, fid) > py)
-        )
-        pt, fid, pu, pv, py = pt[keep], fid[keep], pu[keep], pv[keep], py[keep]
-        d = data[fid]
-        # E_k: canonical edge function (du (pv - v0) - dv (pu - u0)); same bits for both faces of an edge
-        E = d[:, 6:9] * (pv[:, None] - d[:, 3:6]) - d[:, 9:12] * (pu[:, None] - d[:, 0:3])
-        fl = flip_f[fid]
-        ccw = d[:, 15] > 0
-        # interior side of every edge: (left of canonical, ties left) xor flipped == counter-clockwise
-        hit = np.all(((E >= 0) ^ fl) == ccw[:, None], axis=1)
-        Et = np.where(fl, -E, E)  # edge functions in the face's own orientation
-        # crossing above p: sum_k Et_k (y_opp_k - p_y) / A2 > 0  (barycentric depth minus p_y)
-        above = (np.sum(Et * (d[:, 12:15] - py[:, None]), axis=1) > 0) == ccw
-        contrib = np.where(hit & above, np.where(ccw, -1, 1), 0)
-        w += np.bincount(pt, weights=contrib, minlength=B * N).astype(np.int64)
-    return w.reshape(B, N).astype(np.int32)
-
-
 def inside_mask(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Points inside a closed mesh: winding number >= 1 (generalised winding number > 0.5).
 

@@ -47,7 +47,9 @@ class DrapeOptions:
     stay selectable for comparison (docs/evaluation.md compares the three).
     margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost.
     lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``).
-    guard_check: the guard's closest-triangle check after its plane push (``inference.guard``)."""
+    guard_check: the guard's closest-triangle check after its plane push (``inference.guard``).
+    guard_exact: then move every garment vertex still inside the body, by the exact winding
+    number, to the outside (``inference.repair``)."""
 
     fit: FitMode = "learned"
     dynamics: DynamicsMode = "learned"
@@ -57,6 +59,7 @@ class DrapeOptions:
     include_body: bool = True
     lift_arms: bool = True
     guard_check: bool = True
+    guard_exact: bool = True
 
 
 @dataclass(frozen=True)
@@ -249,7 +252,8 @@ def drape(
             plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
                                      layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights,
                                      rings=options.guard_check)
-            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
+            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check,
+                                 exact=options.guard_exact, body_faces=body.faces)
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0]) for g, p in zip(garments, posed)],

@@ -34,7 +34,7 @@ def merge_key(request: DrapeRequest) -> tuple | None:
     return (
         (p.gender, p.age, p.muscle, p.weight, p.height, p.proportions),
         tuple(g.id for g in request.garments),
-        o.fit, o.dynamics, o.guard, o.margin_m, o.layer_gap_m, o.lift_arms, o.guard_check,
+        o.fit, o.dynamics, o.guard, o.margin_m, o.layer_gap_m, o.lift_arms, o.guard_check, o.guard_exact,
     )
 
 

@@ -45,17 +45,19 @@ MODEL_VERSIONS = {
     "learned_dynamics": "snug-gru-v4",  # options.dynamics = 'learned', the default (wrinkle.onnx)
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.guard_check, the default)
     "guard_plain": "plane-push-v3",  # options.guard_check = false: the push alone (v3: farther limbs)
+    "repair": "winding-repair-v1",  # options.guard_exact, the default (inference/repair.py)
     "arms": "shoulder-lift-v2",  # options.lift_arms, the default (inference/motion/self_contact.py); v2: 10 mm clearance
 }
 
 
 def used_model_versions(options) -> dict[str, str]:
     """The versions of the models a request's options ran (its output metadata): body, arms, fit,
-    dynamics and guard (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
+    dynamics, guard and repair (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
     fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}[options.fit]
     dynamics = MODEL_VERSIONS["learned_dynamics"] if options.dynamics == "learned" else "none"
     return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none", "fit": fit, "dynamics": dynamics,
-            "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard else "none"}
+            "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard else "none",
+            "repair": MODEL_VERSIONS["repair"] if options.guard and options.guard_exact else "none"}
 
 
 @dataclass(frozen=True)
@@ -209,7 +211,7 @@ class Runtime:
                 "/body", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
             )
         options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body,
-                               lift_arms=o.lift_arms, guard_check=o.guard_check)
+                               lift_arms=o.lift_arms, guard_check=o.guard_check, guard_exact=o.guard_exact)
         return PreparedDrape(request, shape, motion, assets, options, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:

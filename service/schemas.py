@@ -100,6 +100,12 @@ class DrapeOptions(_Strict):
         "against the closest body triangle and move it out where it is still inside (up to ~4x fewer vertices left inside "
         "the body, ~3-4 ms per garment-frame). false: the push alone (~1.4x the throughput)",
     )
+    guard_exact: bool = Field(
+        True,
+        description="after the guard, test every garment vertex against the posed body with the exact winding number and "
+        "move any still inside (folds and overlaps of the skinned body: a few vertices per frame) to the nearest skin "
+        "point outside, so that none is inside the body (~8-10 ms per garment-frame). false: skip it",
+    )
 
 
 class DrapeRequest(_Strict):

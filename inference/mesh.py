@@ -1,0 +1,75 @@
+"""Mesh helpers shared by the guard, the exact repair and the metrics: normals, components.
+
+Units: metres. Arrays: float32, batch axes first.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+# Mesh components smaller than this fraction of the vertices are accessories (anny's eyes, teeth).
+MAJOR_COMPONENT_FRACTION = 0.1
+
+
+def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True) -> np.ndarray:
+    """Face normals n_f = (v1 - v0) x (v2 - v0) (length = 2 * area) or unit.
+
+    verts : (..., V, 3) float32, metres ; faces : (F, 3) int, counter-clockwise seen from outside
+    returns (..., F, 3) float32
+    """
+    tri = verts[..., faces, :]  # (..., F, 3, 3)
+    n = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
+    if unit:
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
+    return n.astype(np.float32)
+
+
+def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.ndarray | None = None) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Faces touching ``vertex_ids`` and the (S, Fs) 0/1 incidence matrix between them.
+
+    faces      : (F, 3) int ; vertex_ids : (S,) int, default all vertices
+    returns    : face_ids (Fs,) into ``faces``, incidence (S, Fs) float32 CSR
+    """
+    faces = np.asarray(faces, np.int64)
+    if vertex_ids is None:
+        vertex_ids = np.arange(num_vertices)
+    local = np.full(num_vertices, -1, np.int64)
+    local[vertex_ids] = np.arange(len(vertex_ids))
+    touched = (local[faces] >= 0).any(1)
+    face_ids = np.flatnonzero(touched)
+    lf = local[faces[face_ids]]  # (Fs, 3), -1 where the corner is not in the subset
+    rows = lf.ravel()
+    cols = np.repeat(np.arange(len(face_ids)), 3)
+    keep = rows >= 0
+    inc = sp.csr_matrix((np.ones(keep.sum(), np.float32), (rows[keep], cols[keep])), shape=(len(vertex_ids), len(face_ids)))
+    return face_ids, inc
+
+
+def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals n_v = normalise(sum_{f ∋ v} (v1 - v0) x (v2 - v0)).
+
+    verts : (..., V, 3) float32, metres ; faces : (F, 3) int
+    returns (..., V, 3) float32 (zero for vertices without faces)
+    """
+    V = verts.shape[-2]
+    lead = verts.shape[:-2]
+    _, inc = vertex_face_incidence(faces, V)
+    fn = face_normals(verts.reshape((-1, V, 3)), faces, unit=False)  # (L, F, 3)
+    L, F = fn.shape[:2]
+    # n[v, (l, c)] = sum_f inc[v, f] fn[l, f, c]
+    n = (inc @ fn.transpose(1, 0, 2).reshape(F, L * 3)).reshape(V, L, 3).transpose(1, 0, 2)
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
+    return n.reshape(lead + (V, 3)).astype(np.float32)
+
+
+
+def major_components(faces: np.ndarray, num_vertices: int, min_fraction: float = MAJOR_COMPONENT_FRACTION) -> np.ndarray:
+    """(V,) bool: vertices of the edge-connected components holding >= min_fraction of the
+    vertices (anny: the skin, not the eyes and teeth, separate small meshes in the head)."""
+    faces = np.asarray(faces, np.int64)
+    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    g = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(num_vertices, num_vertices))
+    _, label = connected_components(g, directed=False)
+    size = np.bincount(label)
+    return size[label] >= min_fraction * num_vertices

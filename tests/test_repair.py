@@ -1,0 +1,68 @@
+"""Exact repair after the guard (inference/repair.py) and the reusable winding grid."""
+import numpy as np
+import pytest
+import trimesh
+
+from inference.errors import InputShapeError
+from inference.repair import exact_repair
+from inference.winding import WindingGrid, winding_numbers
+
+
+def _two_spheres():
+    """Two unit spheres at x = -+0.9 overlapping in a lens around x = 0 (|x| < 0.1): one closed,
+    self-intersecting mesh, like an LBS arm sunk into the torso."""
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    v = np.concatenate([s.vertices + [-0.9, 0, 0], s.vertices + [0.9, 0, 0]]).astype(np.float32)
+    return v, np.concatenate([s.faces, s.faces + len(s.vertices)])
+
+
+def test_grid_answers_several_point_sets_per_frame():
+    v, f = _two_spheres()
+    frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)  # frame 1: the mesh moved up 3 m
+    grid = WindingGrid(frames, f)
+    p = np.array([[0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.5]], np.float32)  # lens, one part, outside
+    np.testing.assert_array_equal(grid.count(np.stack([p, p])), [[2, 1, 0], [0, 0, 0]])
+    np.testing.assert_array_equal(grid.count(np.stack([p + [0, 0, 3.0]] * 2)), [[0, 0, 0], [2, 1, 0]])
+    rng = np.random.default_rng(0)
+    q = rng.uniform(-2, 2, (2, 500, 3)).astype(np.float32)
+    np.testing.assert_array_equal(grid.count(q), winding_numbers(q, frames, f))
+    with pytest.raises(InputShapeError):
+        grid.count(q[:1])
+
+
+def test_points_inside_the_overlap_or_a_part_end_outside_and_others_stay():
+    v, f = _two_spheres()
+    # inside both parts (the lens: no target among the nearest 32 is outside), inside one part
+    # just beyond the other's surface, inside one part near its top; and outside
+    inside = np.array([[0.0, 0.0, 0.0], [0.05, 0.2, 0.1], [0.15, 0.0, 0.0], [0.9, 0.0, 0.95]], np.float32)
+    outside = np.array([[0.0, 0.0, 0.6], [2.0, 0.0, 0.0], [-0.9, 1.1, 0.0]], np.float32)
+    p = np.concatenate([inside, outside])[None, None]  # (B=1, T=1, N, 3)
+    body = v[None, None]
+    out, left = exact_repair(p, body, f, margin_m=0.01)
+    assert left == 0
+    assert not winding_numbers(out[0], body[0], f).any()
+    np.testing.assert_array_equal(out[0, 0, len(inside):], outside)  # untouched
+    # each moved point is on the union's outer surface, ~margin outside it
+    c = out[0, 0, : len(inside)]
+    r = np.minimum(np.linalg.norm(c - [-0.9, 0, 0], axis=1), np.linalg.norm(c - [0.9, 0, 0], axis=1))
+    assert np.all((r > 1.0) & (r < 1.03)), r
+    # to the nearest outside target: the point near the top goes up, not across the sphere
+    assert c[3, 2] > 0.95 and np.linalg.norm(c[3] - inside[3]) < 0.1
+
+
+def test_batch_and_frames_are_independent():
+    v, f = _two_spheres()
+    body = np.stack([np.stack([v, v + [0, 0, 5.0]])] * 2).astype(np.float32)  # (2, 2, V, 3)
+    p = np.zeros((2, 2, 1, 3), np.float32)  # the origin: inside in frame 0 only
+    out, left = exact_repair(p, body, f, margin_m=0.005)
+    assert left == 0
+    assert np.linalg.norm(out[:, 0, 0], axis=-1).min() > 0.4  # moved out of the lens, to its rim
+    np.testing.assert_array_equal(out[:, 1], p[:, 1])  # frame 1: outside already
+
+
+def test_input_shapes_are_checked():
+    v, f = _two_spheres()
+    with pytest.raises(InputShapeError):
+        exact_repair(np.zeros((1, 4, 3), np.float32), v[None, None], f, 0.002)
+    with pytest.raises(InputShapeError):
+        exact_repair(np.zeros((1, 2, 4, 3), np.float32), v[None, None], f, 0.002)
