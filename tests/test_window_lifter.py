@@ -46,3 +46,21 @@ def test_windows_are_lifted_as_at_runtime():
     # at the clip's start the context is cut at the clip boundary
     first, _ = lift_arms(body, heavy, rot[0:3 + LIFT_CONTEXT], trans[0:3 + LIFT_CONTEXT])
     np.testing.assert_allclose(r[2], first[:3], atol=1e-6)
+
+
+def test_longer_windows_stay_within_their_clip():
+    from training.datasets import MotionBank
+
+    lengths = [10, 6, 12]  # three clips, their 3-frame window starts as MotionBank.build makes them
+    start = np.concatenate([[0], np.cumsum(lengths)])
+    windows = np.concatenate([s + np.arange(n - 2) for s, n in zip(start, lengths)])
+    z = np.zeros((start[-1], 3), np.float32)
+    motions = MotionBank(clip_ids=["a", "b", "c"], clip_start=start, rotations=z, translation=z, gamma=z, leg_length_m=1.0, windows=windows)
+    np.testing.assert_array_equal(motions.windows_of(3), windows)
+    w8 = motions.windows_of(8)
+    np.testing.assert_array_equal(w8, [0, 1, 2, 16, 17, 18, 19, 20])  # clip b (6 frames) has none
+    frames = motions.window_frames(w8, 8)
+    clip = np.searchsorted(start, frames, side="right") - 1
+    assert (clip == clip[:, :1]).all()
+    with pytest.raises(ValueError):
+        motions.windows_of(2)

@@ -22,6 +22,7 @@ OPTIONS = {
     "k_collision": ("--k-collision", "collision stiffness of the training loss, J/m^3"),
     "collision_cap_m": ("--collision-cap", "collision penalty linear beyond this depth, m"),
     "collision_margin_m": ("--collision-margin", "collision margin eps of the training loss, m (default: the material's)"),
+    "window_frames": ("--window", "frames per training window (SNUG: 3; longer: the GRU state is trained over more steps)"),
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
 }
@@ -35,7 +36,7 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
     defaults = {f.name: f.default for f in dataclasses.fields(config_cls)}
     for name, (flag, help_text) in OPTIONS.items():
         if name in defaults:
-            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers") else float
+            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers", "window_frames") else float
             p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")
     p.add_argument("--smoke", action="store_true", help=smoke_help)
     p.add_argument("--out", type=Path, default=checkpoint_dir)

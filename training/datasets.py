@@ -243,6 +243,13 @@ class MotionBank:
         """Mean and std (F,) float32 of gamma over all frames (std floored at ``std_floor``)."""
         return self.gamma.mean(0).astype(np.float32), np.maximum(self.gamma.std(0), std_floor).astype(np.float32)
 
+    def windows_of(self, length: int) -> np.ndarray:
+        """Start frames of the windows of ``length`` frames that stay within one clip."""
+        if length < WINDOW_FRAMES:
+            raise ValueError(f"windows need at least {WINDOW_FRAMES} frames (inertia, eq. 5.6), got {length}")
+        clip = np.searchsorted(self.clip_start, self.windows, side="right") - 1
+        return self.windows[self.windows + length <= self.clip_start[clip + 1]]
+
     def window_frames(self, starts: np.ndarray, length: int = WINDOW_FRAMES) -> np.ndarray:
         """Frame indices (B, length) of windows starting at ``starts`` (B,)."""
         return np.asarray(starts)[:, None] + np.arange(length)[None]

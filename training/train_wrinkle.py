@@ -82,6 +82,7 @@ class WrinkleConfig:
     layers: int = 4
     h0_std: float = 0.1  # h0 ~ N(0, 0.1) per window (SNUG §5.2.5)
     batch_size: int = 16  # windows per step (SNUG §5.3.1)
+    window_frames: int = WINDOW_FRAMES  # frames per window (SNUG: 3; the loss of eq. 5.5 over frames 0..T-1)
     lr: float = 3e-4  # Adam, then lr_final after lr_drop of the budget (SNUG §5.3.1: 1e-3, 1e-4; with the stiff
     lr_final: float = 3e-5  # collision term 1e-3 diverged after ~4 min, measured on the T-shirt)
     lr_drop: float = 0.7
@@ -309,10 +310,12 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         log.info("validation of the initial model: learned static %.5f J/frame, inside %.4f",
                  metrics["validation_init"]["learned"]["static_j_per_frame"], metrics["validation_init"]["learned"]["inside_fraction"])
 
+    windows = motions.windows_of(config.window_frames)
+
     def draw() -> tuple[np.ndarray, np.ndarray]:
-        starts = rng.choice(motions.windows, config.batch_size)
+        starts = rng.choice(windows, config.batch_size)
         shape_idx = rng.integers(0, len(bank), config.batch_size)  # a new random shape per window
-        return shape_idx, motions.window_frames(starts, WINDOW_FRAMES)
+        return shape_idx, motions.window_frames(starts, config.window_frames)
 
     # with pose workers the next batches are posed while this one trains; the batches and their
     # order are those of the sequential loop (drawn here, in order)
