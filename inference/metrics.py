@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
 from inference.guard import major_components, vertex_normals
+from inference.winding import check_faces as _faces
 from inference.winding import winding_numbers
 
 # Offset of the self-intersection probe inside a skin vertex, metres (thinner than any limb,
@@ -36,13 +37,6 @@ def _frames(name: str, a: np.ndarray, ndim: int) -> np.ndarray:
     if a.ndim != ndim or a.shape[-1] != 3:
         raise InputShapeError(name, "(B, N, 3)" if ndim == 3 else "(B, T, N, 3)", a.shape)
     return a
-
-
-def _faces(faces: np.ndarray, num_vertices: int) -> np.ndarray:
-    faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= num_vertices:
-        raise InputShapeError("faces", f"(F, 3) indices < {num_vertices}", faces.shape)
-    return faces.astype(np.int64)
 
 
 # ------------------------------------------------------------------------------ inside

@@ -24,12 +24,16 @@ Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
 from inference.mesh import major_components, vertex_normals
 from inference.winding import FRAME_BLOCK, WindingGrid
+
+log = logging.getLogger(__name__)
 
 # Candidate targets per point inside: the nearest posed skin vertices.
 REPAIR_CANDIDATES = 32
@@ -80,6 +84,9 @@ def exact_repair(
             if not ok.all():  # deep in an overlap: every near target is inside too; look farther
                 ok = _move_outside(Pb, Bv[sl], grid, frame[~ok], idx[~ok], skin_ids, skin_faces, margin_m, min(FAR_FACTOR * k, len(skin_ids)))
             left += int((~ok).sum())
+    if left:
+        log.warning("exact repair: %d of %d point-frames left inside the body (no outside target among %d candidates)",
+                    left, B * T * N, min(FAR_FACTOR * k, len(skin_ids)))
     return P.reshape(B, T, N, 3), left
 
 

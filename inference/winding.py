@@ -42,7 +42,8 @@ def _frames(name: str, a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _faces(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+def check_faces(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """(F, 3) int64 triangle indices into num_vertices vertices (InputShapeError otherwise)."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= num_vertices:
         raise InputShapeError("faces", f"(F, 3) indices < {num_vertices}", faces.shape)
@@ -58,7 +59,7 @@ class WindingGrid:
 
     def __init__(self, verts: np.ndarray, faces: np.ndarray):
         verts = _frames("verts", verts)
-        faces = _faces(faces, verts.shape[1])
+        faces = check_faces(faces, verts.shape[1])
         B, V = verts.shape[:2]
         F = len(faces)
         self.B, self.V, self.F = B, V, F
@@ -192,7 +193,7 @@ def winding_numbers(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) ->
     B, N = points.shape[:2]
     if verts.shape[0] != B:
         raise InputShapeError("verts", f"({B}, V, 3)", verts.shape)
-    _faces(faces, verts.shape[1])
+    check_faces(faces, verts.shape[1])
     out = np.empty((B, N), np.int32)
     for b0 in range(0, B, FRAME_BLOCK):
         sl = slice(b0, b0 + FRAME_BLOCK)
