@@ -77,7 +77,6 @@ from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError, InputValueError
 from inference.mesh import face_normals, major_components, vertex_face_incidence, vertex_normals  # noqa: F401 (re-exported)
-from inference.repair import exact_repair
 from inference.triangles import closest_barycentrics
 
 # Default clearance between the body and the innermost garment (DESIGN.md §3: 2–4 mm).
@@ -788,7 +787,7 @@ class LayerPlans:
 
     body: list[GuardPlan]
     inner: list[list[GuardPlan]]
-    skin: np.ndarray | None = None  # (Vb,) bool: the body's major components (``exact_repair``)
+    skin: np.ndarray | None = None  # (Vb,) bool: the body's major components (``inference.repair``)
 
     @classmethod
     def build(
@@ -824,30 +823,21 @@ def guard_layers(
     body_margin_m: float = DEFAULT_MARGIN_M,
     layer_margin_m: float = DEFAULT_LAYER_MARGIN_M,
     check: bool = True,
-    exact: bool = False,
-    body_faces: np.ndarray | None = None,
 ) -> list[np.ndarray]:
     """Guard a stack of garments, innermost first (see the module docstring).
 
     layer i: p_i <- guard(p_i, body, margin = body_margin_m + i * layer_margin_m)
-             p_i <- exact_repair(p_i, body, margin as above)           (``exact``)
              p_i <- guard(p_i, p_j, margin = layer_margin_m) for j = 0 .. i-1 (guarded p_j)
     layers : each (B, T, N_i, 3) float32, metres ; body : (B, T, Vb, 3) float32, metres
     check  : the closest-triangle check against the body (module docstring; 3-4 ms per
              garment-frame for 5k vertices)
-    exact  : then move every point still inside the body, by the exact winding number, to the
-             outside (``inference.repair``; needs the closed body's ``body_faces``)
     returns: list of (B, T, N_i, 3) float32
     """
     if len(layers) != len(plans.body):
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
-    if exact and body_faces is None:
-        raise InputValueError("body_faces", "the exact repair needs the body's faces")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
         p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m, iterations=GUARD_ITERATIONS, check=check)
-        if exact:
-            p = exact_repair(p, body, body_faces, body_margin_m + i * layer_margin_m, skin=plans.skin)[0]
         for j in range(i):
             p = guard(p, out[j], plans.inner[i][j], layer_margin_m)
         out.append(p)

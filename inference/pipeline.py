@@ -1,4 +1,4 @@
-"""The drape pipeline: shape -> arms -> fit -> dynamics -> skin -> guard -> layers -> export.
+"""The drape pipeline: shape -> arms -> fit -> dynamics -> skin -> guard -> layers -> repair -> export.
 
 Thesis eq. 4.2-4.3: T_c(beta, theta) = T_bar_c + R_G(beta) + R_L(beta, gamma_1..t), then
 M_c = W(T_c, beta, theta, W_c), then the collision post-process of ch. 4.2.1. Each stage is a
@@ -29,6 +29,7 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blen
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
+from inference.repair import exact_repair
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -48,8 +49,8 @@ class DrapeOptions:
     margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost.
     lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``).
     guard_check: the guard's closest-triangle check after its plane push (``inference.guard``).
-    guard_exact: then move every garment vertex still inside the body, by the exact winding
-    number, to the outside (``inference.repair``)."""
+    guard_exact: last, move every garment vertex still inside the body, by the exact winding
+    number, to the outside (``inference.repair``; after the layers' pushes, with each layer's margin)."""
 
     fit: FitMode = "learned"
     dynamics: DynamicsMode = "learned"
@@ -252,8 +253,11 @@ def drape(
             plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
                                      layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights,
                                      rings=options.guard_check)
-            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check,
-                                 exact=options.guard_exact, body_faces=body.faces)
+            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
+        if options.guard_exact:
+            with timer("repair"):  # last: no garment vertex inside the body (exact winding number)
+                posed = [exact_repair(p, body_vertices, body.faces, options.margin_m + i * options.layer_gap_m, skin=plans.skin)[0]
+                         for i, p in enumerate(posed)]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0]) for g, p in zip(garments, posed)],

@@ -72,8 +72,10 @@ class Inputs:
 
 
 def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garments: list[str] | None = None,
-             bodies: dict[str, np.ndarray] = BODIES) -> list[Row]:
+             bodies: dict[str, np.ndarray] = BODIES, repair: bool = True) -> list[Row]:
     """Collision rates before/after the guard for every (body, garment) on ``clip_id``.
+
+    repair: the guard's exact repair (``DrapeOptions.guard_exact``, the default) included
 
     every : evaluate every n-th frame of the 30 fps clip (fit baselines without dynamics: frames
             are independent, so only those frames are draped)
@@ -89,14 +91,15 @@ def evaluate(clip_id: str = "01_01", fit: str = "retarget", every: int = 1, garm
             g = catalog.get(gid)
             t0 = time.perf_counter()
             raw = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=False, lift_arms=False), neutral=neutral)
-            guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=True, lift_arms=False), neutral=neutral)
+            guarded = drape(body, shape, motion, [g], DrapeOptions(fit=fit, dynamics="none", guard=True, lift_arms=False, guard_exact=repair),
+                            neutral=neutral)
             _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
             body_verts = body.skin(shape.rest_vertices, transforms)
             before = collision_rates(raw.garments[0].vertices[None], body_verts, body.faces)
             after = collision_rates(guarded.garments[0].vertices[None], body_verts, body.faces)
             rows.append(Row(body_name, gid, body_verts.shape[1], before, after, time.perf_counter() - t0))
-            log.info("%s %s: inside %.3f%% -> %.3f%% (clean %.3f%% -> %.3f%%)", body_name, gid, before["inside_pct"],
-                     after["inside_pct"], before["inside_pct_clean"], after["inside_pct_clean"])
+            log.info("%s %s: inside %.3f%% -> %.3f%% (clean %.3f%% -> %.3f%%; %d -> %d vertex-frames)", body_name, gid, before["inside_pct"],
+                     after["inside_pct"], before["inside_pct_clean"], after["inside_pct_clean"], before["inside"], after["inside"])
     return rows
 
 
