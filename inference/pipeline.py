@@ -29,7 +29,7 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blen
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.repair import exact_repair
+from inference.repair import repair_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -256,8 +256,8 @@ def drape(
             posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
         if options.guard_exact:
             with timer("repair"):  # last: no garment vertex inside the body (exact winding number)
-                posed = [exact_repair(p, body_vertices, body.faces, options.margin_m + i * options.layer_gap_m, skin=plans.skin)[0]
-                         for i, p in enumerate(posed)]
+                posed = repair_layers(posed, body_vertices, body.faces, [options.margin_m + i * options.layer_gap_m for i in range(len(posed))],
+                                      skin=plans.skin)[0]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0]) for g, p in zip(garments, posed)],

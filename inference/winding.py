@@ -126,10 +126,20 @@ class WindingGrid:
         if points.shape[0] != self.B:
             raise InputShapeError("points", f"({self.B}, N, 3)", points.shape)
         B, N = points.shape[:2]
-        p_u = np.ascontiguousarray(points[..., 0], np.float64).ravel()
-        p_v = np.ascontiguousarray(points[..., 2], np.float64).ravel()
-        p_y = np.ascontiguousarray(points[..., 1], np.float64).ravel()
-        frame = np.repeat(np.arange(B), N)
+        return self.count_at(points.reshape(B * N, 3), np.repeat(np.arange(B), N)).reshape(B, N)
+
+    def count_at(self, points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+        """Winding number at points of any frames: points (P, 3) float, metres, point i against
+        frame ``frame[i]`` (P,) int of the mesh; returns (P,) int32."""
+        points = np.asarray(points)
+        frame = np.asarray(frame, np.int64)
+        if points.ndim != 2 or points.shape[1] != 3 or frame.shape != points.shape[:1]:
+            raise InputShapeError("points", "(P, 3) with frame (P,)", points.shape)
+        if len(frame) and (frame.min() < 0 or frame.max() >= self.B):
+            raise InputShapeError("frame", f"indices < {self.B}", frame.shape)
+        p_u = np.ascontiguousarray(points[:, 0], np.float64)
+        p_v = np.ascontiguousarray(points[:, 2], np.float64)
+        p_y = np.ascontiguousarray(points[:, 1], np.float64)
         h, ncell = self.h, self.ncell
         pi = np.floor((p_u - self.lo[frame, 0]) / h).astype(np.int64)
         pj = np.floor((p_v - self.lo[frame, 1]) / h).astype(np.int64)
@@ -137,7 +147,8 @@ class WindingGrid:
         pkey = frame * self.cells + np.clip(pi, 0, ncell[0] - 1) * ncell[1] + np.clip(pj, 0, ncell[1] - 1)
         pcount = np.where(in_grid, self.start[pkey + 1] - self.start[pkey], 0)
 
-        w = np.zeros(B * N, np.int64)
+        P = len(points)
+        w = np.zeros(P, np.int64)
         pts_idx = np.flatnonzero(pcount)
         csum = np.cumsum(pcount[pts_idx])
         # blocks of points with at most PAIR_BLOCK candidate pairs
@@ -157,8 +168,8 @@ class WindingGrid:
                 & (pv <= np.take(vmax, fid)) & (np.take(ymax, fid) > py)
             )
             pt, fid, pu, pv, py = pt[keep], fid[keep], pu[keep], pv[keep], py[keep]
-            w += np.bincount(pt, weights=self._crossings(fid, pu, pv, py), minlength=B * N).astype(np.int64)
-        return w.reshape(B, N).astype(np.int32)
+            w += np.bincount(pt, weights=self._crossings(fid, pu, pv, py), minlength=P).astype(np.int64)
+        return w.astype(np.int32)
 
     def _crossings(self, fid: np.ndarray, pu: np.ndarray, pv: np.ndarray, py: np.ndarray) -> np.ndarray:
         """Signed crossing (-1, 0, +1) of the ray from each point with its candidate face fid."""

@@ -66,3 +66,20 @@ def test_input_shapes_are_checked():
         exact_repair(np.zeros((1, 4, 3), np.float32), v[None, None], f, 0.002)
     with pytest.raises(InputShapeError):
         exact_repair(np.zeros((1, 2, 4, 3), np.float32), v[None, None], f, 0.002)
+
+
+def test_layers_share_the_body_and_keep_their_margins():
+    from inference.repair import repair_layers
+
+    v, f = _two_spheres()
+    body = v[None, None]
+    inner = np.array([[[[0.0, 0.0, 0.0], [0.0, 0.0, 1.3]]]], np.float32)  # the lens; outside
+    outer = np.array([[[[0.9, 0.0, 0.95], [0.9, 0.0, 1.2]]]], np.float32)  # inside the top of a part; outside
+    (a, b), left = repair_layers([inner, outer], body, f, [0.005, 0.02])
+    assert left == 0
+    assert not winding_numbers(np.concatenate([a, b], axis=2)[0], body[0], f).any()
+    np.testing.assert_array_equal(a[0, 0, 1], inner[0, 0, 1])
+    np.testing.assert_array_equal(b[0, 0, 1], outer[0, 0, 1])
+    assert 1.015 < np.linalg.norm(b[0, 0, 0] - [0.9, 0, 0]) < 1.03  # its own margin: 2 cm
+    with pytest.raises(InputShapeError):
+        repair_layers([inner, outer], body, f, [0.005])
