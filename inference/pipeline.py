@@ -29,10 +29,10 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blen
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.repair import repair_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
+from inference.repair import repair_layers
 
 FitMode = Literal["learned", "retarget", "none"]
 DynamicsMode = Literal["learned", "none"]

@@ -4,9 +4,8 @@ sequence) for the neutral body and the two extreme adult corners, before and aft
 CI runs a subsample of the frames (every 24th, ~29 frames) of two garments; the full table over
 every garment and every 8th frame is `python -m training.evaluate_collisions --every 8`
 (docs/evaluation.md). After the guard and its exact repair (the pipeline's default), no garment
-vertex is inside the body; with the repair off, the guard alone leaves a few (plane-push-v4,
-every 24th frame, all %, T-shirt: neutral 0.090, heaviest 0.184), which the test requires as proof
-that the repair has work to do here.
+vertex is inside the body; with the repair off, the guard alone leaves a few on the heaviest
+body's T-shirt, which the test requires as proof that the repair has work to do here.
 """
 import pytest
 
