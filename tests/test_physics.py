@@ -277,6 +277,33 @@ def test_training_margin_and_stiffness_override():
     assert cloth.with_collision_stiffness(None) is cloth
 
 
+def test_exact_inside_mask_overrides_the_tangent_plane():
+    """A vertex the exact test finds inside (e.g. pushed into an arm while its closest skin is the
+    torso beside it) is penalised by its distance to the closest skin vertex, pulled toward it;
+    vertices the mask leaves outside keep the tangent-plane penalty; no mask = eq. 5.12 as before."""
+    verts = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float64)
+    cloth = ClothGeometry.from_mesh(verts, [[0, 1, 2]], MAT)
+    pts, nrm = _plane_body()  # closest skin vertex of every point below: the origin
+    x = verts * 0.1 + [0.0, 0.0, 0.05]  # 5 cm above the plane: no tangent-plane penalty
+    x[0] = [0.003, 0.0, 0.004]  # 4 mm above the plane, 5 mm from the skin vertex at the origin
+    inside = torch.tensor([[True, False, False]])
+    xt = _t(x[None]).requires_grad_(True)
+    assert collision_energy(cloth, xt, _t(pts), _t(nrm)).item() == 0.0
+    e = collision_energy(cloth, xt, _t(pts), _t(nrm), inside=inside)
+    assert e.item() == pytest.approx(MAT.k_collision * (MAT.collision_margin_m + 0.005) ** 3, rel=1e-9)
+    e.backward()
+    g = xt.grad[0, 0].numpy()
+    # descent (-g) points from x toward the skin vertex at the origin
+    np.testing.assert_allclose(-g / np.linalg.norm(g), -x[0] / np.linalg.norm(x[0]), atol=1e-9)
+    assert np.all(xt.grad[0, 1:].numpy() == 0.0)
+    # a deeper tangent-plane penalty is kept (min of the two distances)
+    y = x.copy()
+    y[0] = [0.0, 0.0, -0.01]
+    assert collision_energy(cloth, _t(y[None]), _t(pts), _t(nrm), inside=inside).item() == pytest.approx(MAT.k_collision * (MAT.collision_margin_m + 0.01) ** 3, rel=1e-9)
+    with pytest.raises(ValueError, match="inside"):
+        collision_energy(cloth, xt, _t(pts), _t(nrm), inside=inside[:, :2])
+
+
 def test_geometry_to_device_keeps_values():
     verts, faces = _grid()
     cloth = ClothGeometry.from_mesh(verts, faces, MAT, torch.float32)

@@ -25,11 +25,14 @@ def test_smoke_train_export_run(tmp_path):
     for key in ("static_j", "strain_j", "collision_j", "distance_to_retarget_cm_mean"):
         assert np.isfinite(fit_record["metrics"]["held_out_learned"][key])
 
-    wrinkle_record = train_wrinkle(WrinkleConfig(garment=GARMENT, **WRINKLE_SMOKE), smoke=True, out_dir=ckpt)
+    # with the exact (winding-number) inside test in the collision loss
+    wrinkle_record = train_wrinkle(WrinkleConfig(garment=GARMENT, exact_inside=True, **WRINKLE_SMOKE), smoke=True, out_dir=ckpt)
     assert wrinkle_record["steps"] == WRINKLE_SMOKE["max_steps"]
-    assert "01_01" not in wrinkle_record["config"]["clips"]
+    assert "01_01" not in wrinkle_record["config"]["clips"] and wrinkle_record["config"]["exact_inside"]
     val = wrinkle_record["metrics"]["validation"]
     assert np.isfinite(val["learned"]["static_j_per_frame"]) and np.isfinite(val["learned"]["inertia_j_per_frame"])
+    for run in ("learned", "fit_only"):  # the evaluation's inside test on the validation clip
+        assert 0.0 <= val[run]["inside_fraction_exact"] <= 1.0
     assert all(np.isfinite(h["loss_j"]) for h in wrinkle_record["history"])
 
     entry = export_garment(GARMENT, ckpt, tmp_path / "models", smoke=True)
@@ -52,6 +55,16 @@ def test_training_cli_parses_into_the_config(tmp_path):
     record = torch.load(tmp_path / GARMENT / "fit_smoke.pt", weights_only=False)["record"]
     assert record["smoke"] and record["config"]["lr"] == 2e-4 and record["config"]["k_collision"] == 5000.0
     assert record["config"]["max_steps"] == 5  # the smoke overrides
+
+
+def test_training_cli_boolean_options():
+    import argparse
+
+    from training.cli import _flag
+
+    assert _flag("1") and _flag("True") and not _flag("0") and not _flag("no")
+    with pytest.raises(argparse.ArgumentTypeError):
+        _flag("maybe")
 
 
 def test_checkpoint_pack_round_trip_and_warm_start(tmp_path):

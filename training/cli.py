@@ -23,9 +23,18 @@ OPTIONS = {
     "collision_cap_m": ("--collision-cap", "collision penalty linear beyond this depth, m"),
     "collision_margin_m": ("--collision-margin", "collision margin eps of the training loss, m (default: the material's)"),
     "window_frames": ("--window", "frames per training window (SNUG: 3; longer: the GRU state is trained over more steps)"),
+    "exact_inside": ("--exact-inside", "collision loss with the exact (winding-number) inside test: 1 or 0"),
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
 }
+
+
+def _flag(text: str) -> bool:
+    """A boolean option's value: 1/0, true/false, yes/no."""
+    value = text.strip().lower()
+    if value not in ("1", "0", "true", "false", "yes", "no"):
+        raise argparse.ArgumentTypeError(f"expected 1 or 0, got {text!r}")
+    return value in ("1", "true", "yes")
 
 
 def run(argv: list[str] | None, description: str, config_cls, train: Callable, smoke: dict, smoke_help: str, checkpoint_dir: Path) -> dict:
@@ -37,6 +46,8 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
     for name, (flag, help_text) in OPTIONS.items():
         if name in defaults:
             kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers", "window_frames") else float
+            if isinstance(defaults[name], bool):
+                kind = _flag
             p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")
     p.add_argument("--smoke", action="store_true", help=smoke_help)
     p.add_argument("--out", type=Path, default=checkpoint_dir)

@@ -23,6 +23,7 @@ from scipy.sparse.linalg import eigsh
 from inference.body import BodyModel, linear_blend_skinning
 from inference.garment import GarmentAsset
 from inference.guard import vertex_normals
+from inference.metrics import inside_mask
 from inference.motion.asfamc import load_asf_amc
 from inference.motion.descriptor import DESCRIPTOR_LAYOUT, motion_descriptor
 from inference.motion.retarget import ground, retarget, target_leg_length
@@ -105,6 +106,8 @@ class ShapeBank:
     body_normals    : (N, M, 3) unit outward vertex normals (of the whole body mesh)
     body_weights    : (M, J) skinning weights of the kept body vertices
     candidates      : (N, V, k) int32, the k kept body vertices nearest to each retarget vertex
+    rest_vertices   : (N, Vb, 3) float32 metres, the whole shaped rest body (the closed skin of
+                      the exact inside test, ``inside_mask``)
     """
 
     phenotypes: np.ndarray
@@ -116,9 +119,18 @@ class ShapeBank:
     body_normals: np.ndarray
     body_weights: np.ndarray
     candidates: np.ndarray
+    rest_vertices: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.phenotypes)
+
+    def inside_mask(self, body: BodyModel, shape_idx: np.ndarray, transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """Exact inside test of garment points against the posed closed skin (winding number >= 1,
+        ``inference.metrics.inside_mask``): shapes ``shape_idx`` (B,) posed by ``transforms``
+        (B, T, J, 4, 4), points (B*T, V, 3) metres; returns (B*T, V) bool."""
+        B, T = transforms.shape[:2]
+        skin = body.skin(self.rest_vertices[shape_idx], transforms).reshape(B * T, -1, 3)
+        return inside_mask(points, skin, body.faces)
 
     @classmethod
     def build(cls, body: BodyModel, asset: GarmentAsset, phenotypes: np.ndarray, k: int = 8, chunk: int = 32) -> "ShapeBank":
@@ -150,6 +162,7 @@ class ShapeBank:
             body_normals=np.ascontiguousarray(normals[:, keep]),
             body_weights=np.ascontiguousarray(body.dense_weights[keep]),
             candidates=remap[cand].astype(np.int32),
+            rest_vertices=points.astype(np.float32),
         )
 
 

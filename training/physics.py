@@ -443,16 +443,31 @@ def gravity_energy(cloth: ClothGeometry, x: torch.Tensor) -> torch.Tensor:
     return -(cloth.vertex_mass_kg * (x @ g)).sum(-1)  # eq. 5.11
 
 
-def collision_energy(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None, active: torch.Tensor | None = None, smoothing_m: float | None = None) -> torch.Tensor:
+def collision_energy(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor, body_normals: torch.Tensor, candidates: torch.Tensor | None = None, active: torch.Tensor | None = None, smoothing_m: float | None = None,
+                     inside: torch.Tensor | None = None) -> torch.Tensor:
     """Body collision penalty (eq. 5.12): sum_v k_collision max(eps - d(x_v), 0)^3, joules.
 
     d from ``body_signed_distances`` (arguments as there); eps, k_collision from the material.
     active : optional (B, V) bool, vertices that collide (others are left out: e.g. garment
              vertices in the posed body's self-intersections, where the skin is no surface)
+    inside : optional (B, V) bool, vertices an exact test found inside the body (the winding
+             number of the closed posed skin, ``inference.winding``; not differentiated). The
+             closest vertex's tangent plane misjudges a vertex pushed into an arm whose closest
+             skin is the torso beside it (d > 0); for these d = min(d, -|x_v - b_c|), so the
+             penalty pulls them toward their closest skin vertex b_c, out of the part they are in.
     returns (B,)
     """
     _check_positions(cloth, x)
-    d = body_signed_distances(x, body_points, body_normals, candidates, smoothing_m)
+    if inside is None:
+        d = body_signed_distances(x, body_points, body_normals, candidates, smoothing_m)
+    else:
+        if inside.shape != x.shape[:2]:
+            raise ValueError(f"inside: expected {tuple(x.shape[:2])}, got {tuple(inside.shape)}")
+        closest = closest_body_vertices(x, body_points, candidates)
+        batch = torch.arange(x.shape[0], device=x.device)[:, None]
+        offset = x - body_points[batch, closest]
+        d = (offset * body_normals[batch, closest]).sum(-1)
+        d = torch.where(inside, torch.minimum(d, -torch.sqrt((offset * offset).sum(-1) + 1e-18)), d)
     m = cloth.material
     depth = torch.clamp(m.collision_margin_m - d, min=0.0)
     if active is not None:
@@ -491,16 +506,18 @@ def total_energy(cloth: ClothGeometry, x: torch.Tensor, x_prev: torch.Tensor, x_
     return inertia_energy(cloth, x, x_prev, x_prev2, dt_s) + static_energy(cloth, x, body_points, body_normals, candidates)
 
 
-def energy_terms(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor | None = None, body_normals: torch.Tensor | None = None, candidates: torch.Tensor | None = None, x_prev: torch.Tensor | None = None, x_prev2: torch.Tensor | None = None, dt_s: float | None = None) -> dict[str, torch.Tensor]:
+def energy_terms(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.Tensor | None = None, body_normals: torch.Tensor | None = None, candidates: torch.Tensor | None = None, x_prev: torch.Tensor | None = None, x_prev2: torch.Tensor | None = None, dt_s: float | None = None,
+                 inside: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Every term separately, (B,) joules each: strain, bending, gravity, and collision (with a
-    body) and inertia (with x_prev, x_prev2, dt_s) — the per-frame metrics of DESIGN.md §5."""
+    body; ``inside`` as in ``collision_energy``) and inertia (with x_prev, x_prev2, dt_s) — the
+    per-frame metrics of DESIGN.md §5."""
     out = {
         "strain": strain_energy(cloth, x),
         "bending": bending_energy(cloth, x),
         "gravity": gravity_energy(cloth, x),
     }
     if body_points is not None:
-        out["collision"] = collision_energy(cloth, x, body_points, body_normals, candidates)
+        out["collision"] = collision_energy(cloth, x, body_points, body_normals, candidates, inside=inside)
     if x_prev is not None:
         out["inertia"] = inertia_energy(cloth, x, x_prev, x_prev2, dt_s)
     return out

@@ -93,6 +93,7 @@ class WrinkleConfig:
     validation_frames: int = 120  # first frames of the validation clip
     max_clip_frames: int | None = None  # truncate clips (smoke runs)
     fresh_candidates: bool = True  # re-select collision candidates in every posed frame (KD-tree of the posed body)
+    exact_inside: bool = False  # collision loss: vertices inside the closed posed skin by the exact winding number pulled to their closest skin vertex (physics.collision_energy)
     lift_arms: bool = True  # train on the poses the service drapes: arms lifted out of the torso (inference.motion.self_contact)
     init: str | None = None  # warm start: a wrinkle.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
@@ -205,13 +206,14 @@ def matrix_candidates(body_points: torch.Tensor, x: torch.Tensor, k: int, chunk:
                           for i in range(0, len(x), chunk)])
 
 
-def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: float) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: float, inside: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """SNUG loss (eq. 5.5) of windows x (B, T, V, 3): L_static summed over the T frames (eq. 5.7)
     + L_inertia of every frame t >= 2 from its two predecessors (eq. 5.6); mean over the batch.
-    Returns the loss and its terms (B,) J."""
+    inside: optional (B*T, V) bool, the exact inside test (``ShapeBank.inside_mask``) for the
+    collision term. Returns the loss and its terms (B,) J."""
     B, T = x.shape[:2]
     flat = x.reshape(B * T, -1, 3)
-    terms = {k: v.reshape(B, T).sum(1) for k, v in energy_terms(cloth, flat, batch.body_points, batch.body_normals, batch.candidates).items()}
+    terms = {k: v.reshape(B, T).sum(1) for k, v in energy_terms(cloth, flat, batch.body_points, batch.body_normals, batch.candidates, inside=inside).items()}
     terms["inertia"] = sum(inertia_energy(cloth, x[:, t], x[:, t - 1], x[:, t - 2], dt_s) for t in range(2, T))
     return sum(terms.values()).mean(), terms
 
@@ -237,11 +239,17 @@ def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: Sha
                     acc[name][k] = acc[name].get(k, 0.0) + per_frame / len(bank)
                 d = body_signed_distances(x.reshape(-1, *x.shape[2:]), batch.body_points, batch.body_normals, batch.candidates)
                 acc[name]["inside_fraction"] = acc[name].get("inside_fraction", 0.0) + float((d < 0).float().mean()) / len(bank)
+                if bank.rest_vertices is not None:
+                    exact = bank.inside_mask(body, np.array([s]), batch.transforms.cpu().numpy(), x.reshape(-1, *x.shape[2:]).cpu().numpy())
+                    acc[name]["inside_fraction_exact"] = acc[name].get("inside_fraction_exact", 0.0) + float(exact.mean()) / len(bank)
         for name, terms in acc.items():
             inside = terms.pop("inside_fraction")
+            exact = terms.pop("inside_fraction_exact", None)
             out[name] = {f"{k}_j_per_frame": v for k, v in terms.items()}
             out[name]["static_j_per_frame"] = sum(v for k, v in terms.items() if k != "inertia")
             out[name]["inside_fraction"] = inside  # tangent-plane d < 0 of eq. 5.12, all frames and vertices
+            if exact is not None:
+                out[name]["inside_fraction_exact"] = exact  # winding number >= 1 (the evaluation's test)
     out["frames"] = T
     out["shapes"] = len(bank)
     return out
@@ -337,12 +345,16 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
             nxt_idx, nxt_frames = draw()
             pending.append((nxt_idx, pool.submit(_pose_job, nxt_idx, nxt_frames)))
         else:
-            batch = make_batch(body, bank, fitted, motions, *draw(), lifter)
+            shape_idx, frames = draw()
+            batch = make_batch(body, bank, fitted, motions, shape_idx, frames, lifter)
         h0 = model.initial_state(config.batch_size, config.h0_std, gen).to(device)  # h0 ~ N(0, 0.1)
         x = garment_frames(model, batch, weights, h0)
         if config.fresh_candidates:
             batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
-        loss, terms = snug_loss(train_cloth, x, batch, dt_s)
+        inside = None
+        if config.exact_inside:  # numpy on the CPU: the posed closed skin and its winding numbers
+            inside = torch.as_tensor(bank.inside_mask(body, shape_idx, batch.transforms.cpu().numpy(), x.detach().reshape(-1, *x.shape[2:]).cpu().numpy())).to(device)
+        loss, terms = snug_loss(train_cloth, x, batch, dt_s, inside)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
