@@ -144,6 +144,7 @@ def export_wrinkle(model: WrinkleGRU, path: Path, record: dict, seed: int = 0) -
         "config": record["config"], "steps": record["steps"], "train_wall_s": record["train_wall_s"],
         "metrics": record["metrics"], "git_commit": record.get("git_commit"),
         "training_frames": record.get("training_frames"),
+        **({"output_basis": record["output_basis"]} if "output_basis" in record else {}),
     }
 
 

@@ -23,6 +23,7 @@ Run (writes build/models/<garment>/wrinkle.pt with its config and metrics):
     python -m training.train_wrinkle --garment tshirt --minutes 8
     python -m training.train_wrinkle --garment tshirt --smoke     # CI: a few steps
     python -m training.train_wrinkle --garment tshirt --device cuda --pose-workers 4 --init <wrinkle.pt>
+    python -m training.train_wrinkle --garment tshirt --exact-inside 1 --window 12   # the evaluation's inside test in the loss
 On a GPU the model, the loss and the collision-candidate search run there (~0.14 s per step on
 an H100 with five runs sharing it, against ~0.9 s on one core here); the numpy posing of the
 windows (FK, arm lifting) runs in ``--pose-workers`` forked processes, ahead of the steps, in the
