@@ -43,12 +43,12 @@ MODE_CLIPS = ("walk", "dance", "run")
 MODE_EVERY = 6
 
 
-def _rest_corrections(garment: str, clip_id: str, phenotypes: np.ndarray, every: int) -> np.ndarray:
-    """Guard + repair corrections of the learned drape, rest-pose frame: (T', V, 3) metres."""
+def _rest_corrections(inputs, garment: str, phenotypes: np.ndarray, every: int) -> np.ndarray:
+    """Guard + repair corrections of the learned drape on ``inputs.clip`` (``Inputs``), rest-pose
+    frame: (T', V, 3) metres."""
     from inference.pipeline import DrapeOptions, drape
-    from training.evaluate_collisions import Inputs, shaped_motion
+    from training.evaluate_collisions import shaped_motion
 
-    inputs = Inputs.load(clip_id)
     body, asset = inputs.body, inputs.catalog.get(garment)
     shape, motion = shaped_motion(body, inputs.clip, phenotypes)
     options = DrapeOptions(lift_arms=False)  # shaped_motion has lifted the arms already
@@ -62,13 +62,15 @@ def _rest_corrections(garment: str, clip_id: str, phenotypes: np.ndarray, every:
 def correction_modes(garment: str, count: int = 128, clips: tuple[str, ...] = MODE_CLIPS, every: int = MODE_EVERY) -> np.ndarray:
     """First ``count`` principal components of the rest-pose corrections, (count, V * 3) float32."""
     from training.evaluate import BODIES
+    from training.evaluate_collisions import Inputs
 
     if "01_01" in clips:
         raise ValueError("01_01 is the spec's test sequence: never derive model parameters from it")
     fields = []
     for clip_id in clips:
+        inputs = Inputs.load(clip_id)
         for name, phenotypes in BODIES.items():
-            d = _rest_corrections(garment, clip_id, phenotypes, every)
+            d = _rest_corrections(inputs, garment, phenotypes, every)
             fields.append(d.reshape(len(d), -1))
             log.info("%s %s %s: %d correction fields", garment, clip_id, name, len(d))
     _, s, vt = np.linalg.svd(np.concatenate(fields), full_matrices=False)

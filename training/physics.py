@@ -463,6 +463,8 @@ def collision_energy(cloth: ClothGeometry, x: torch.Tensor, body_points: torch.T
     else:
         if inside.shape != x.shape[:2]:
             raise ValueError(f"inside: expected {tuple(x.shape[:2])}, got {tuple(inside.shape)}")
+        if smoothing_m is not None:
+            raise ValueError("inside: the exact test needs the closest vertex's plane (smoothing_m None)")
         closest = closest_body_vertices(x, body_points, candidates)
         batch = torch.arange(x.shape[0], device=x.device)[:, None]
         offset = x - body_points[batch, closest]
