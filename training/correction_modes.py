@@ -18,7 +18,7 @@ and exact repair of the runtime, ``inference.guard``, ``inference.repair``) are 
    columns Q U_r and head rows U_r^T A (the output changes only by the dropped singular values).
 
 Run (the v6 jacket, session 8):
-    python -m training.correction_modes modes --garment jacket --out build/modes_jacket.npy
+    python -m training.correction_modes modes --garment jacket --models <v5 models dir> --out build/modes_jacket.npy
     python -m training.correction_modes extend --modes build/modes_jacket.npy --count 64 \\
         --checkpoint build/models/jacket/wrinkle.pt --out build/ck/jacket_init.pt
     python -m training.train_wrinkle --garment jacket --init build/ck/jacket_init.pt --exact-inside 1 --window 12 ...
@@ -43,7 +43,7 @@ MODE_CLIPS = ("walk", "dance", "run")
 MODE_EVERY = 6
 
 
-def _rest_corrections(inputs, garment: str, phenotypes: np.ndarray, every: int) -> np.ndarray:
+def _rest_corrections(inputs, garment: str, phenotypes: np.ndarray, every: int, models=None) -> np.ndarray:
     """Guard + repair corrections of the learned drape on ``inputs.clip`` (``Inputs``), rest-pose
     frame: (T', V, 3) metres."""
     from inference.pipeline import DrapeOptions, drape
@@ -52,15 +52,16 @@ def _rest_corrections(inputs, garment: str, phenotypes: np.ndarray, every: int) 
     body, asset = inputs.body, inputs.catalog.get(garment)
     shape, motion = shaped_motion(body, inputs.clip, phenotypes)
     options = DrapeOptions(lift_arms=False)  # shaped_motion has lifted the arms already
-    raw = drape(body, shape, motion, [asset], DrapeOptions(guard=False, lift_arms=False), neutral=inputs.neutral).garments[0].vertices[::every]
-    guarded = drape(body, shape, motion, [asset], options, neutral=inputs.neutral).garments[0].vertices[::every]
+    raw = drape(body, shape, motion, [asset], DrapeOptions(guard=False, lift_arms=False), neutral=inputs.neutral, models=models).garments[0].vertices[::every]
+    guarded = drape(body, shape, motion, [asset], options, neutral=inputs.neutral, models=models).garments[0].vertices[::every]
     _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, ::every], motion.translation[None, ::every])
     blend = np.einsum("vj,tjab->tvab", asset.skin_weights.astype(np.float64), transforms[0, :, :, :3, :3].astype(np.float64))
     return np.linalg.solve(blend, (guarded - raw).astype(np.float64)[..., None])[..., 0]
 
 
-def correction_modes(garment: str, count: int = 128, clips: tuple[str, ...] = MODE_CLIPS, every: int = MODE_EVERY) -> np.ndarray:
-    """First ``count`` principal components of the rest-pose corrections, (count, V * 3) float32."""
+def correction_modes(garment: str, count: int = 128, clips: tuple[str, ...] = MODE_CLIPS, every: int = MODE_EVERY, models=None) -> np.ndarray:
+    """First ``count`` principal components of the rest-pose corrections of the learned model in
+    ``models`` (``inference.learned.LearnedModels``; default: the shipped one), (count, V * 3) float32."""
     from training.evaluate import BODIES
     from training.evaluate_collisions import Inputs
 
@@ -70,7 +71,7 @@ def correction_modes(garment: str, count: int = 128, clips: tuple[str, ...] = MO
     for clip_id in clips:
         inputs = Inputs.load(clip_id)
         for name, phenotypes in BODIES.items():
-            d = _rest_corrections(inputs, garment, phenotypes, every)
+            d = _rest_corrections(inputs, garment, phenotypes, every, models)
             fields.append(d.reshape(len(d), -1))
             log.info("%s %s %s: %d correction fields", garment, clip_id, name, len(d))
     _, s, vt = np.linalg.svd(np.concatenate(fields), full_matrices=False)
@@ -130,6 +131,7 @@ def main(argv: list[str] | None = None) -> None:
     m.add_argument("--garment", required=True)
     m.add_argument("--count", type=int, default=128)
     m.add_argument("--out", type=Path, required=True)
+    m.add_argument("--models", type=Path, help="learned models directory whose corrections are taken (default: assets/models; the v6 jacket and T-shirt: their v5 models)")
     e = sub.add_parser("extend", help="append correction modes to a wrinkle checkpoint's basis")
     e.add_argument("--modes", type=Path, required=True)
     e.add_argument("--count", type=int, default=64)
@@ -143,7 +145,9 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     if args.command == "modes":
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        np.save(args.out, correction_modes(args.garment, args.count))
+        from inference.learned import LearnedModels
+
+        np.save(args.out, correction_modes(args.garment, args.count, models=LearnedModels(args.models) if args.models else None))
         return
     ck = torch.load(args.checkpoint, weights_only=False, map_location="cpu")
     if args.command == "extend":
