@@ -42,7 +42,7 @@ MODEL_VERSIONS = {
     "fit": "mhclo-retarget",
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
-    "learned_dynamics": "snug-gru-v6",  # options.dynamics = 'learned', the default (wrinkle.onnx); v6: the wider output basis (jacket, T-shirt, dress, long-sleeve)
+    "learned_dynamics": "snug-gru-v6",  # options.dynamics = 'learned', the default (wrinkle.onnx); v6: the wider output basis (every garment)
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.guard_check, the default)
     "guard_plain": "plane-push-v3",  # options.guard_check = false: the push alone (v3: farther limbs)
     "repair": "winding-repair-v1",  # options.guard_exact, the default (inference/repair.py)

@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> None:
     m.add_argument("--garment", required=True)
     m.add_argument("--count", type=int, default=128)
     m.add_argument("--out", type=Path, required=True)
-    m.add_argument("--models", type=Path, help="learned models directory whose corrections are taken (default: assets/models; the v6 garments: their v5 models)")
+    m.add_argument("--models", type=Path, help="learned models directory whose corrections are taken (default: assets/models; the v6 garments: the model each was widened from)")
     e = sub.add_parser("extend", help="append correction modes to a wrinkle checkpoint's basis")
     e.add_argument("--modes", type=Path, required=True)
     e.add_argument("--count", type=int, default=64)
