@@ -117,6 +117,45 @@ def test_pose_workers_give_the_sequential_batches(tmp_path):
     assert losses[1] == pytest.approx(losses[0], rel=1e-4)
 
 
+def test_inside_workers_give_the_in_process_inside_test(tmp_path):
+    """Splitting the exact inside test of each step over worker processes (``--inside-workers``)
+    gives the mask of the in-process test: the same losses, step by step, and the split covers
+    every window (the mask of the batch, concatenated back in order)."""
+    from training.train_fit import SMOKE as FIT_SMOKE, FitConfig, train_fit
+    from training.train_wrinkle import SMOKE as WRINKLE_SMOKE, WrinkleConfig, train_wrinkle
+
+    train_fit(FitConfig(garment=GARMENT, **FIT_SMOKE), smoke=True, out_dir=tmp_path)
+    runs = [train_wrinkle(WrinkleConfig(garment=GARMENT, exact_inside=True, **{**WRINKLE_SMOKE, "inside_workers": n}), smoke=True, out_dir=tmp_path)
+            for n in (0, 2)]
+    losses = [[h["loss_j"] for h in r["history"]] for r in runs]
+    assert losses[1] == pytest.approx(losses[0], rel=1e-4)
+
+
+def test_inside_of_batch_splits_by_windows():
+    """The split test concatenates the windows' masks in batch order, for uneven splits too."""
+    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
+
+    import training.train_wrinkle as tw
+    from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+    from inference.garment import GarmentCatalog
+    from training.datasets import ShapeBank
+
+    body = BodyModel.load()
+    bank = ShapeBank.build(body, GarmentCatalog.load().get(GARMENT), np.stack([NEUTRAL_PHENOTYPES, np.ones(6, np.float32)]), 4)
+    rng = np.random.default_rng(1)
+    B, T = 5, 2
+    shape_idx = rng.integers(0, 2, B)
+    transforms = np.broadcast_to(np.eye(4, dtype=np.float32), (B, T, body.num_bones, 4, 4)).copy()
+    points = (bank.rest_vertices[np.repeat(shape_idx, T), ::7] + rng.normal(0, 0.01, (B * T, 1, 3))).astype(np.float32)
+    ref = bank.inside_mask(body, shape_idx, transforms, points)
+    assert 0 < ref.mean() < 1
+    tw._POSE_CONTEXT = (body, bank, None, None)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("fork")) as pool:
+        for parts in (2, 3, 7):
+            assert (tw.inside_of_batch(bank, body, shape_idx, transforms, points, pool, parts) == ref).all()
+
+
 def test_matrix_candidates_match_the_kd_tree():
     """The GPU's candidate search (distances by matrix products) finds the KD-tree's k nearest
     body vertices (as sets; float32 rounding may swap exact near ties at the k-th place)."""

@@ -18,6 +18,7 @@ OPTIONS = {
     "threads": ("--threads", "torch intra-op threads"),
     "device": ("--device", "torch device of the model and the loss (cpu, cuda)"),
     "pose_workers": ("--pose-workers", "processes that pose the next batches while one trains (0: in turn)"),
+    "inside_workers": ("--inside-workers", "processes that split the exact inside test of each step by windows (0: in this one)"),
     "init": ("--init", "continue from this checkpoint (warm start)"),
     "k_collision": ("--k-collision", "collision stiffness of the training loss, J/m^3"),
     "collision_cap_m": ("--collision-cap", "collision penalty linear beyond this depth, m"),
@@ -45,7 +46,7 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
     defaults = {f.name: f.default for f in dataclasses.fields(config_cls)}
     for name, (flag, help_text) in OPTIONS.items():
         if name in defaults:
-            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers", "window_frames") else float
+            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers", "inside_workers", "window_frames") else float
             if isinstance(defaults[name], bool):
                 kind = _flag
             p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")

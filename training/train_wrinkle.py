@@ -24,10 +24,12 @@ Run (writes build/models/<garment>/wrinkle.pt with its config and metrics):
     python -m training.train_wrinkle --garment tshirt --smoke     # CI: a few steps
     python -m training.train_wrinkle --garment tshirt --device cuda --pose-workers 4 --init <wrinkle.pt>
     python -m training.train_wrinkle --garment tshirt --exact-inside 1 --window 12   # the evaluation's inside test in the loss
+    python -m training.train_wrinkle --garment tshirt --device cuda --exact-inside 1 --window 12 --pose-workers 1 --inside-workers 3
 On a GPU the model, the loss and the collision-candidate search run there (~0.14 s per step on
 an H100 with five runs sharing it, against ~0.9 s on one core here); the numpy posing of the
 windows (FK, arm lifting) runs in ``--pose-workers`` forked processes, ahead of the steps, in the
-sequential order. ``tools/device_checkpoints.py`` packs checkpoints to move them to such a machine.
+sequential order; ``--inside-workers`` splits the exact inside test of each step (numpy, ~2 s for
+a 12-frame batch on one core here) by windows over forked processes. ``tools/device_checkpoints.py`` packs checkpoints to move them to such a machine.
 """
 from __future__ import annotations
 
@@ -101,6 +103,7 @@ class WrinkleConfig:
     threads: int = 1
     device: str = "cpu"  # torch device of the model and the loss ("cuda": the banks and poses stay numpy on the CPU)
     pose_workers: int = 0  # processes that pose the next batches (FK, arm lifting) while this one trains (0: in turn)
+    inside_workers: int = 0  # processes that split the exact inside test of each step by windows (0: in this one)
     log_every: int = 25
 
 
@@ -173,6 +176,23 @@ _POSE_CONTEXT: tuple | None = None
 def _pose_job(shape_idx: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     body, bank, motions, lifter = _POSE_CONTEXT
     return pose_windows(body, bank, shape_idx, motions, frames, lifter)
+
+
+def _inside_job(shape_idx: np.ndarray, transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
+    body, bank, _, _ = _POSE_CONTEXT
+    return bank.inside_mask(body, shape_idx, transforms, points)
+
+
+def inside_of_batch(bank: ShapeBank, body: BodyModel, shape_idx: np.ndarray, transforms: np.ndarray, points: np.ndarray,
+                    pool: ProcessPoolExecutor | None, parts: int) -> np.ndarray:
+    """``ShapeBank.inside_mask`` of a batch (windows ``shape_idx`` (B,), ``transforms`` (B, T, J, 4, 4),
+    ``points`` (B*T, V, 3) metres), split by windows over ``parts`` jobs of ``pool`` (None: here)."""
+    if pool is None or parts <= 1:
+        return bank.inside_mask(body, shape_idx, transforms, points)
+    T = transforms.shape[1]
+    cuts = np.linspace(0, len(shape_idx), min(parts, len(shape_idx)) + 1).astype(int)
+    jobs = [pool.submit(_inside_job, shape_idx[a:b], transforms[a:b], points[a * T:b * T]) for a, b in zip(cuts[:-1], cuts[1:])]
+    return np.concatenate([j.result() for j in jobs])
 
 
 def garment_frames(model: WrinkleGRU | None, batch: WindowBatch, weights: torch.Tensor, h0: torch.Tensor | None) -> torch.Tensor:
@@ -301,11 +321,13 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
     dt_s = 1.0 / motions.fps
     lifter = WindowLifter(body, bank, motions) if config.lift_arms else None
     val_lifter = WindowLifter(body, val_bank, val_motions) if config.lift_arms else None
-    pool = None
+    pool = inside_pool = None
+    global _POSE_CONTEXT
+    _POSE_CONTEXT = (body, bank, motions, lifter)
     if config.pose_workers > 0:  # forked before any CUDA use; the workers only run numpy
-        global _POSE_CONTEXT
-        _POSE_CONTEXT = (body, bank, motions, lifter)
         pool = ProcessPoolExecutor(config.pose_workers, mp_context=multiprocessing.get_context("fork"))
+    if config.exact_inside and config.inside_workers > 0:
+        inside_pool = ProcessPoolExecutor(config.inside_workers, mp_context=multiprocessing.get_context("fork"))
     model.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     weights = torch.as_tensor(asset.skin_weights.astype(np.float32)).to(device)
@@ -354,7 +376,8 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
             batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
         inside = None
         if config.exact_inside:  # numpy on the CPU: the posed closed skin and its winding numbers
-            inside = torch.as_tensor(bank.inside_mask(body, shape_idx, batch.transforms.cpu().numpy(), x.detach().reshape(-1, *x.shape[2:]).cpu().numpy())).to(device)
+            inside = torch.as_tensor(inside_of_batch(bank, body, shape_idx, batch.transforms.cpu().numpy(), x.detach().reshape(-1, *x.shape[2:]).cpu().numpy(),
+                                                     inside_pool, config.inside_workers)).to(device)
         loss, terms = snug_loss(train_cloth, x, batch, dt_s, inside)
         opt.zero_grad()
         loss.backward()
@@ -365,8 +388,9 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
             history.append({"step": step, "seconds": time.perf_counter() - t0, "loss_j": float(loss.detach()), **{k: float(v.detach().mean()) for k, v in terms.items()}})
             log.info("step %d %.0f s: L %.5f J (%s)", step, history[-1]["seconds"], float(loss.detach()), ", ".join(f"{k} {float(v.detach().mean()):.5f}" for k, v in terms.items()))
     wall_s = time.perf_counter() - t0
-    if pool:
-        pool.shutdown(cancel_futures=True)
+    for p in (pool, inside_pool):
+        if p:
+            p.shutdown(cancel_futures=True)
 
     model.eval()
     t_val = time.perf_counter()
