@@ -133,3 +133,54 @@ def test_onnx_export_parity(tmp_path):
     assert {"config", "git_commit", "train_wall_s", "metrics"} <= set(meta)
     sess = ort.InferenceSession(str(tmp_path / "wrinkle.onnx"), providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()] == ["phenotypes", "gamma", "h0"]
+
+
+def test_import_onnx_rebuilds_the_exported_checkpoints(tmp_path):
+    """training.import_onnx: fit.onnx / wrinkle.onnx read back into torch give the exported
+    weights exactly (GRU gate blocks reordered (z, r, h) -> (r, z, n), head transposed), the
+    record of model.json, and a basis that rebuilds the same buffer."""
+    pytest.importorskip("onnx")
+    import json
+
+    from training.export_onnx import export_fit, export_wrinkle
+    from training.import_onnx import fit_checkpoint, wrinkle_checkpoint
+
+    record = {"config": {"lr": 1e-4}, "train_wall_s": 12.5, "steps": 7, "metrics": {"x": 1.0}, "git_commit": "abc"}
+    torch.manual_seed(1)
+    fit = FitRegressor(harmonic_basis(9, GRID_E, 4), hidden=8, layers=3)
+    torch.nn.init.normal_(fit.head.weight, std=0.1)
+    gru = small_gru(layers=3)
+    for name, p in gru.gru.named_parameters():  # distinct gate blocks, so a wrong order is caught
+        p.data.copy_(torch.randn_like(p))
+    entry = {"fit": export_fit(fit, tmp_path / "fit.onnx", record), "wrinkle": export_wrinkle(gru, tmp_path / "wrinkle.onnx", record)}
+    (tmp_path / "model.json").write_text(json.dumps(entry))
+
+    for original, ck, build in ((fit, fit_checkpoint(tmp_path), lambda c: FitRegressor(c["basis"], c["hidden"], c["layers"])),
+                                (gru, wrinkle_checkpoint(tmp_path), lambda c: WrinkleGRU(c["basis"], c["gamma_mean"], c["gamma_std"], c["hidden"], c["layers"]))):
+        want = original.state_dict()
+        assert set(ck["state_dict"]) == set(want)
+        for k, v in want.items():
+            assert torch.equal(ck["state_dict"][k], v), k
+        rebuilt = build(ck)
+        torch.testing.assert_close(rebuilt.output.basis, original.output.basis, rtol=1e-6, atol=0)
+        rebuilt.load_state_dict(ck["state_dict"])
+        assert ck["record"]["steps"] == 7 and ck["record"]["config"] == {"lr": 1e-4} and ck["record"]["git_commit"] == "abc"
+    assert ck["hidden"] == 8 and ck["layers"] == 3
+
+
+def test_import_onnx_rejects_a_wrong_gate_order(tmp_path, monkeypatch):
+    """The parity check against onnxruntime catches a mis-read GRU (here: gates left in ONNX order)."""
+    pytest.importorskip("onnx")
+    import json
+
+    import training.import_onnx as imp
+    from training.export_onnx import export_wrinkle
+
+    gru = small_gru()
+    for p in gru.gru.parameters():
+        p.data.copy_(torch.randn_like(p))
+    record = {"config": {}, "train_wall_s": 0.0, "steps": 0, "metrics": {}}
+    (tmp_path / "model.json").write_text(json.dumps({"wrinkle": export_wrinkle(gru, tmp_path / "wrinkle.onnx", record)}))
+    monkeypatch.setattr(imp, "_gru_blocks", lambda a, H: a[:3 * H])
+    with pytest.raises(RuntimeError, match="differs from onnxruntime"):
+        imp.wrinkle_checkpoint(tmp_path)
