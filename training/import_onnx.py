@@ -64,14 +64,13 @@ def fit_checkpoint(model_dir: Path) -> dict:
     entry = json.loads((model_dir / "model.json").read_text())["fit"]
     path = model_dir / entry["file"]
     _, w = _initializers(path)
-    linear = sorted(int(k.split(".")[1]) for k in w if k.startswith("mlp.") and k.endswith(".weight"))
+    layers = sum(k.startswith("mlp.") and k.endswith(".weight") for k in w)  # one Linear per hidden layer
     hidden = int(w["mlp.0.weight"].shape[0])
     basis = _unscaled_basis(w["output.basis"], entry["basis_size"])
-    model = FitRegressor(basis, hidden, len(linear))
-    state = {k: torch.as_tensor(v) for k, v in w.items()}
-    model.load_state_dict(state)
+    model = FitRegressor(basis, hidden, layers)
+    model.load_state_dict({k: torch.as_tensor(v) for k, v in w.items()})
     _check_fit(model.eval(), path)
-    return {"record": _record(entry, "fit", path), "state_dict": model.state_dict(), "basis": basis, "hidden": hidden, "layers": len(linear)}
+    return {"record": _record(entry, "fit", path), "state_dict": model.state_dict(), "basis": basis, "hidden": hidden, "layers": layers}
 
 
 def _gru_blocks(a: np.ndarray, H: int) -> np.ndarray:
