@@ -20,10 +20,13 @@ def test_smoke_train_export_run(tmp_path):
     from training.train_wrinkle import SMOKE as WRINKLE_SMOKE, WrinkleConfig, train_wrinkle
 
     ckpt = tmp_path / "checkpoints"
-    fit_record = train_fit(FitConfig(garment=GARMENT, **FIT_SMOKE), smoke=True, out_dir=ckpt)
-    assert fit_record["steps"] == FIT_SMOKE["max_steps"]
+    # the fit too with the exact inside test in its collision loss
+    fit_record = train_fit(FitConfig(garment=GARMENT, exact_inside=True, **FIT_SMOKE), smoke=True, out_dir=ckpt)
+    assert fit_record["steps"] == FIT_SMOKE["max_steps"] and fit_record["config"]["exact_inside"]
     for key in ("static_j", "strain_j", "collision_j", "distance_to_retarget_cm_mean"):
         assert np.isfinite(fit_record["metrics"]["held_out_learned"][key])
+    for run in ("held_out_learned", "held_out_retarget"):
+        assert 0.0 <= fit_record["metrics"][run]["inside_fraction_exact"] <= 1.0
 
     # with the exact (winding-number) inside test in the collision loss
     wrinkle_record = train_wrinkle(WrinkleConfig(garment=GARMENT, exact_inside=True, **WRINKLE_SMOKE), smoke=True, out_dir=ckpt)
@@ -55,6 +58,26 @@ def test_training_cli_parses_into_the_config(tmp_path):
     record = torch.load(tmp_path / GARMENT / "fit_smoke.pt", weights_only=False)["record"]
     assert record["smoke"] and record["config"]["lr"] == 2e-4 and record["config"]["k_collision"] == 5000.0
     assert record["config"]["max_steps"] == 5  # the smoke overrides
+
+
+def test_fit_exact_inside_test_on_the_rest_skin():
+    """train_fit.exact_inside: skin vertices pushed 1 cm in along their normal are inside the
+    shaped rest body, pushed 1 cm out are not; the mask is per bank shape."""
+    from types import SimpleNamespace
+
+    from inference.body import BodyModel
+    from inference.guard import vertex_normals
+    from training.train_fit import exact_inside
+
+    body = BodyModel.load()
+    rest = body.shape(np.array([[0.5, 0.8, 0.5, 0.5, 0.5, 0.5], [1, 1, 1, 1, 1, 1]], np.float32)).rest_vertices
+    bank = SimpleNamespace(rest_vertices=rest)
+    sel = np.arange(0, rest.shape[1], 97)  # a spread of skin vertices
+    n = vertex_normals(rest[1], body.faces)[sel]
+    pts = np.stack([rest[1, sel] - 0.01 * n, rest[1, sel] + 0.01 * n]).astype(np.float32)  # heavy body's skin
+    mask = exact_inside(bank, body.faces, np.array([1, 1]), torch.as_tensor(pts)).numpy()
+    assert mask.dtype == bool and mask.shape == (2, len(sel))
+    assert mask[0].mean() > 0.9 and mask[1].mean() < 0.1
 
 
 def test_training_cli_boolean_options():

@@ -27,7 +27,16 @@ OPTIONS = {
     "exact_inside": ("--exact-inside", "collision loss with the exact (winding-number) inside test: 1 or 0"),
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
+    "clips": ("--clips", "training clips, comma-separated CMU ids (training.datasets: AMC or BVH_CLIPS)"),
 }
+
+
+def _clips(text: str) -> tuple[str, ...]:
+    """A comma-separated list of clip ids."""
+    ids = tuple(c.strip() for c in text.split(",") if c.strip())
+    if not ids:
+        raise argparse.ArgumentTypeError("expected at least one clip id")
+    return ids
 
 
 def _flag(text: str) -> bool:
@@ -49,6 +58,8 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
             kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers", "inside_workers", "window_frames") else float
             if isinstance(defaults[name], bool):
                 kind = _flag
+            if name == "clips":
+                kind = _clips
             p.add_argument(flag, dest=name, type=kind, default=defaults[name], help=f"{help_text} (default {defaults[name]})")
     p.add_argument("--smoke", action="store_true", help=smoke_help)
     p.add_argument("--out", type=Path, default=checkpoint_dir)

@@ -25,6 +25,7 @@ from inference.garment import GarmentAsset
 from inference.guard import vertex_normals
 from inference.metrics import inside_mask
 from inference.motion.asfamc import load_asf_amc
+from inference.motion.bvh import load_bvh
 from inference.motion.descriptor import DESCRIPTOR_LAYOUT, motion_descriptor
 from inference.motion.retarget import ground, retarget, target_leg_length
 from inference.motion.self_contact import ArmLifter
@@ -40,10 +41,16 @@ FPS = 30.0
 # SNUG §5.2.5: the GRU is trained on sub-sequences of 3 frames.
 WINDOW_FRAMES = 3
 # CMU training clips (subject, trial). Never 01_01 (the spec's test sequence); 02_02 is held out
-# for validation. AMC files under training/sources/mocap/cmu-asfamc/<subject>/.
+# for validation. AMC files under training/sources/mocap/cmu-asfamc/<subject>/, or a BVH file of
+# BVH_CLIPS under training/sources/mocap/.
 TRAIN_CLIPS = ("01_14", "02_01", "02_03", "02_04", "02_05", "02_09")
 VALIDATION_CLIP = "02_02"
 TEST_ONLY_CLIPS = ("01_01",)
+# Clips that are never trained on: 01_01, and 131_03 (the bundled "dance" clip), which is the
+# second validation of the wrinkle GRUs (an unseen motion style, ``training.evaluate --clip dance``).
+HELD_OUT_CLIPS = TEST_ONLY_CLIPS + ("131_03",)
+# CMU clips that come as (cgspeed) BVH conversions, in metres: subject 131, Michael Jackson styled.
+BVH_CLIPS = {"131_01": "bvh/scaled_131_01.bvh", "131_03": "bvh/scaled_131_03.bvh"}
 # Descriptor entries that scale with the body's size (root linear velocity and acceleration).
 _LINEAR_SLICES = (DESCRIPTOR_LAYOUT["root_linear_velocity"], DESCRIPTOR_LAYOUT["root_linear_acceleration"])
 
@@ -168,7 +175,7 @@ class ShapeBank:
 
 # ------------------------------------------------------------------------------ motions
 def clip_paths(clip_id: str, mocap_dir: Path = MOCAP_DIR) -> tuple[Path, Path]:
-    """ASF and AMC paths of a CMU clip id 'SS_TT' (subject, trial)."""
+    """ASF and AMC paths of a CMU clip id 'SS_TT' (subject, trial) that comes as AMC."""
     subject = clip_id.split("_")[0]
     return mocap_dir / subject / f"{subject}.asf", mocap_dir / subject / f"{clip_id}.amc"
 
@@ -178,10 +185,12 @@ def load_training_clip(clip_id: str, body: BodyModel, neutral, mocap_dir: Path =
 
     returns rotations (T, 31, 3) float32 radians, translation (T, 3) float32 metres
     """
-    if clip_id in TEST_ONLY_CLIPS:
-        raise ValueError(f"{clip_id} is the spec's test sequence: never train on it")
-    asf, amc = clip_paths(clip_id, mocap_dir)
-    source = load_asf_amc(asf, amc)
+    if clip_id in HELD_OUT_CLIPS:
+        raise ValueError(f"{clip_id} is held out for testing or validation: never train on it")
+    if clip_id in BVH_CLIPS:
+        source = load_bvh(mocap_dir.parent / BVH_CLIPS[clip_id])
+    else:
+        source = load_asf_amc(*clip_paths(clip_id, mocap_dir))
     if max_frames is not None:  # source frames at the source rate (CMU: 120 fps)
         source = source.frames(0, int(max_frames * source.fps / FPS) + 1)
     result = retarget(source, body, neutral, fps=FPS, grounded=False)

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from inference.body import BodyModel
 from inference.garment import GarmentCatalog
+from inference.metrics import inside_mask
 from training.datasets import CACHE_DIR, REPO_ROOT, ShapeBank, harmonic_basis, sample_adult_phenotypes
 from training.cli import run as run_cli
 from training.manifest import git_commit
@@ -62,6 +63,7 @@ class FitConfig:
     # continuing a trained T-shirt or dress fit at 1e-3 or 3e-4 diverged after 200-1400 steps
     # (measured); the v3 T-shirt and jacket fits trained from scratch at 1e-3 -> 1e-4 in 10 min.
     fresh_candidates: bool = True  # re-select the collision candidates at the current prediction every step
+    exact_inside: bool = False  # collision loss: vertices inside the closed rest skin by the exact winding number pulled to their closest skin vertex (physics.collision_energy)
     init: str | None = None  # warm start: a fit.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
     threads: int = 1  # torch intra-op threads (the CPU is shared)
@@ -81,11 +83,20 @@ def fresh_candidates(trees: list[cKDTree], shape_idx: np.ndarray, x: torch.Tenso
     return torch.as_tensor(np.stack([trees[i].query(pts[b], k=k)[1].reshape(len(pts[b]), k) for b, i in enumerate(shape_idx)]), dtype=torch.int64)
 
 
-def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBank) -> dict:
+def exact_inside(bank: ShapeBank, faces: np.ndarray, shape_idx: np.ndarray, x: torch.Tensor) -> torch.Tensor:
+    """Garment vertices x (B, V, 3) inside the closed shaped rest skin of bank shapes ``shape_idx``
+    (B,) by the winding number (``inference.metrics.inside_mask``, the evaluation's test): (B, V)
+    bool on x's device, not differentiated."""
+    mask = inside_mask(x.detach().cpu().numpy(), bank.rest_vertices[shape_idx], faces)
+    return torch.as_tensor(mask).to(x.device)
+
+
+def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBank, faces: np.ndarray | None = None) -> dict:
     """Mean static energy terms (J) over ``bank`` of retarget + R_G (model None: the retarget
     alone), mean / max vertex distance to the retarget (cm), and the fraction of garment
     vertices closer to the body than the collision margin (d < eps) and inside it (d < 0) by
-    the tangent-plane distance of eq. 5.12 (candidates selected at the evaluated positions)."""
+    the tangent-plane distance of eq. 5.12 (candidates selected at the evaluated positions);
+    with the body's ``faces``, also the fraction inside by the exact winding-number test."""
     with torch.no_grad():
         x0 = torch.as_tensor(bank.retarget)
         x = x0 + model(torch.as_tensor(bank.phenotypes)) if model is not None else x0
@@ -100,6 +111,8 @@ def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBa
     out["distance_to_retarget_cm_max"] = float(dist.max() * 100)
     out["within_margin_fraction"] = float((d < cloth.material.collision_margin_m).float().mean())
     out["inside_fraction"] = float((d < 0).float().mean())
+    if faces is not None:
+        out["inside_fraction_exact"] = float(exact_inside(bank, faces, np.arange(len(bank)), x).float().mean())
     return out
 
 
@@ -146,7 +159,8 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         idx = torch.as_tensor(idx_np).to(device)
         x = X0[idx] + model(P[idx])  # eq. 4.2 without R_L: retarget fit + R_G
         cand = fresh_candidates(trees, idx_np, x, config.candidates, BP[idx]) if config.fresh_candidates else C[idx]
-        terms = energy_terms(train_cloth, x, BP[idx], BN[idx], cand)
+        inside = exact_inside(bank, body.faces, idx_np, x) if config.exact_inside else None
+        terms = energy_terms(train_cloth, x, BP[idx], BN[idx], cand, inside=inside)
         loss = sum(terms.values()).mean()  # L_static, eq. 5.7
         opt.zero_grad()
         loss.backward()
@@ -159,7 +173,7 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     wall_s = time.perf_counter() - t0
 
     model.eval().cpu()
-    metrics = {"held_out_learned": evaluate_fit(model, cloth, held_out), "held_out_retarget": evaluate_fit(None, cloth, held_out)}
+    metrics = {"held_out_learned": evaluate_fit(model, cloth, held_out, body.faces), "held_out_retarget": evaluate_fit(None, cloth, held_out, body.faces)}
     log.info("held-out static energy: learned %.5f J vs retarget %.5f J; distance to retarget %.2f cm",
              metrics["held_out_learned"]["static_j"], metrics["held_out_retarget"]["static_j"], metrics["held_out_learned"]["distance_to_retarget_cm_mean"])
     record = {
