@@ -15,7 +15,7 @@ garment's own weights (the dress: its diffused weights, as they are). Collision 
 the KD-tree candidates of the shape bank in the rest pose (``training.datasets.ShapeBank``):
 the closest of the k rest-pose neighbours is taken in the posed frame.
 
-Training clips: ``training.datasets.TRAIN_CLIPS`` (never 01_01); validation: 02_02, run as one
+Training clips: ``training.datasets.TRAIN_CLIPS`` (never 01_01 or 131_03); validation: 02_02, run as one
 sequence from h0 = 0 on held-out shapes, energies per frame against the fit-only baseline
 (R_L = 0).
 
