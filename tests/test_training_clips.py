@@ -28,8 +28,8 @@ def test_bvh_clip_is_retargeted_like_an_amc_clip(body):
     rot_a, trans_a = load_training_clip("02_01", *body, max_frames=30)
     assert rot_b.shape == rot_a.shape == (30, 31, 3) and trans_b.shape == trans_a.shape == (30, 3)
     assert np.isfinite(rot_b).all() and np.isfinite(trans_b).all()
-    # both on the neutral body, grounded the same way: the root at a standing height in metres
-    assert 0.7 < np.median(trans_b[:, 2] - trans_a[:, 2] + 1.0) < 1.3
+    # both on the neutral body, grounded the same way: the roots' heights (metres, BVH units
+    # converted) agree within 15 cm while both subjects stand and walk
     assert np.abs(trans_b[:, 2] - trans_a[:, 2]).max() < 0.15
 
 
