@@ -27,6 +27,7 @@ OPTIONS = {
     "exact_inside": ("--exact-inside", "collision loss with the exact (winding-number) inside test: 1 or 0"),
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
+    "corner_fraction": ("--corner-fraction", "share of training windows on the 64 box corners of the shape bank (default: uniform over the bank)"),
     "clips": ("--clips", "training clips, comma-separated CMU ids (training.datasets: AMC or BVH_CLIPS)"),
 }
 

@@ -90,9 +90,12 @@ def harmonic_basis(num_vertices: int, edges: np.ndarray, k: int, cache: Path | N
 
 
 # ------------------------------------------------------------------------------ shapes
+N_CORNERS = 2**6  # corners of the 6-dimensional phenotype box
+
+
 def sample_adult_phenotypes(n: int, rng: np.random.Generator, corners: bool = True) -> np.ndarray:
     """n phenotype vectors (n, 6) float32 in the adult box (inference.body.PHENOTYPE_RANGES):
-    the 64 corners first when ``corners`` (as many as fit in n), then uniform samples."""
+    the ``N_CORNERS`` corners first when ``corners`` (as many as fit in n), then uniform samples."""
     lo, hi = phenotype_box()
     rows = []
     if corners:

@@ -54,6 +54,7 @@ from training.datasets import (
     TRAIN_CLIPS,
     VALIDATION_CLIP,
     WINDOW_FRAMES,
+    N_CORNERS,
     MotionBank,
     ShapeBank,
     harmonic_basis,
@@ -78,6 +79,7 @@ class WrinkleConfig:
     minutes: float = 8.0  # wall-clock training budget (banks not counted)
     max_steps: int = 100_000
     bank_shapes: int = 256  # training shapes: 64 box corners + uniform (a new one per window)
+    corner_fraction: float | None = None  # share of windows drawn from the 64 box corners (None: uniform over the bank, 64/256)
     candidates: int = 8  # KD-tree collision candidates per garment vertex
     k_collision: float | None = TRAIN_K_COLLISION  # eq. 5.12 stiffness of the training loss, J/m^3 (None: the material's)
     collision_cap_m: float | None = 0.005  # training loss: collision penalty linear beyond this depth (ClothGeometry.with_collision_stiffness)
@@ -107,6 +109,18 @@ class WrinkleConfig:
     pose_workers: int = 0  # processes that pose the next batches (FK, arm lifting) while this one trains (0: in turn)
     inside_workers: int = 0  # processes that split the exact inside test of each step by windows (0: in this one)
     log_every: int = 25
+
+
+def draw_shapes(rng: np.random.Generator, bank_size: int, n: int, corner_fraction: float | None = None) -> np.ndarray:
+    """n bank indices, one per window: uniform over the bank, or, with ``corner_fraction``, a box
+    corner (the bank's first ``N_CORNERS`` shapes, ``sample_adult_phenotypes``) with that
+    probability and a uniform non-corner shape otherwise (the extremes are where the collisions are)."""
+    if corner_fraction is None:
+        return rng.integers(0, bank_size, n)
+    if not 0.0 <= corner_fraction <= 1.0 or bank_size <= N_CORNERS:
+        raise ValueError(f"corner_fraction {corner_fraction} needs 0..1 and a bank of more than {N_CORNERS} shapes, got {bank_size}")
+    corner = rng.random(n) < corner_fraction
+    return np.where(corner, rng.integers(0, N_CORNERS, n), rng.integers(N_CORNERS, bank_size, n))
 
 
 def skin_torch(rest: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
@@ -347,7 +361,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
 
     def draw() -> tuple[np.ndarray, np.ndarray]:
         starts = rng.choice(windows, config.batch_size)
-        shape_idx = rng.integers(0, len(bank), config.batch_size)  # a new random shape per window
+        shape_idx = draw_shapes(rng, len(bank), config.batch_size, config.corner_fraction)  # a new random shape per window
         return shape_idx, motions.window_frames(starts, config.window_frames)
 
     # with pose workers the next batches are posed while this one trains; the batches and their
