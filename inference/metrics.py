@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
 from inference.guard import major_components, vertex_normals
+from inference.mesh import face_normals
 from inference.winding import check_faces as _faces
 from inference.winding import winding_numbers
 
@@ -244,3 +245,100 @@ def layer_violation_pct(inner_points: np.ndarray, outer_verts: np.ndarray, outer
         ip, ov = ip.reshape((-1,) + ip.shape[2:]), ov.reshape((-1,) + ov.shape[2:])
     bad, _ = layer_violations(ip, ov, outer_faces, tolerance_m)
     return 100.0 * float(bad.mean()) if bad.size else 0.0
+
+
+# ------------------------------------------------------------------------------ realism
+# A hinge whose two face normals are more than this far apart is folded over (90 degrees).
+FOLD_ANGLE_RAD = np.pi / 2
+
+
+def interior_hinges(faces: np.ndarray) -> np.ndarray:
+    """Pairs of faces sharing an edge (the mesh's interior edges): (H, 2) int64, sorted.
+
+    faces : (F, 3) int ; uses trimesh's face adjacency (edges shared by exactly two faces)
+    """
+    import trimesh.graph
+
+    return np.asarray(trimesh.graph.face_adjacency(faces=np.asarray(faces, np.int64)), np.int64).reshape(-1, 2)
+
+
+def edge_length_ratios(verts: np.ndarray, rest: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Edge length over rest length, |x_i - x_j| / |X_i - X_j|, per frame.
+
+    verts : (B, V, 3) metres ; rest : (V, 3) metres (the garment's material rest geometry)
+    edges : (E, 2) int ; returns (B, E) float32 (1 = rest length; < 1 compressed, > 1 stretched)
+    """
+    verts = _frames("verts", verts, 3)
+    rest_len = np.linalg.norm(rest[edges[:, 1]] - rest[edges[:, 0]], axis=-1)
+    length = np.linalg.norm(verts[:, edges[:, 1]] - verts[:, edges[:, 0]], axis=-1)
+    return (length / np.maximum(rest_len, 1e-12)).astype(np.float32)
+
+
+def hinge_angles(verts: np.ndarray, faces: np.ndarray, hinges: np.ndarray) -> np.ndarray:
+    """Angle between the unit normals of the two faces of every hinge, radians in [0, pi]
+    (0: flat; pi: folded flat onto itself).
+
+    verts : (B, V, 3) ; faces : (F, 3) ; hinges : (H, 2) face pairs ; returns (B, H) float32
+    """
+    n = face_normals(_frames("verts", verts, 3), faces)  # (B, F, 3) unit
+    cos = np.einsum("bhc,bhc->bh", n[:, hinges[:, 0]], n[:, hinges[:, 1]])
+    return np.arccos(np.clip(cos, -1.0, 1.0)).astype(np.float32)
+
+
+def folded_face_share(angles: np.ndarray, hinges: np.ndarray, num_faces: int, fold_rad: float = FOLD_ANGLE_RAD) -> np.ndarray:
+    """Share of faces whose normal turns more than ``fold_rad`` from a neighbour's, per frame:
+    folds, knots and inverted triangles (a crumpled sleeve fails this; cloth at rest is < 1 %).
+
+    angles : (B, H) from ``hinge_angles`` ; hinges : (H, 2) ; returns (B,) float in [0, 1]
+    """
+    folded = angles > fold_rad  # (B, H)
+    flag = np.zeros((angles.shape[0], num_faces), bool)
+    b, h = np.nonzero(folded)
+    flag[b, hinges[h, 0]] = True
+    flag[b, hinges[h, 1]] = True
+    return flag.mean(axis=1)
+
+
+def vertex_jumps(frames: np.ndarray) -> np.ndarray:
+    """Largest vertex displacement between consecutive frames, metres: max_v |x_t,v - x_t-1,v|.
+
+    frames : (T, V, 3) metres ; returns (T - 1,) float32 (spikes and popping show as outliers
+    against the reference's, which moves only as fast as the body drives it)
+    """
+    frames = np.asarray(frames)
+    if frames.ndim != 3 or frames.shape[-1] != 3:
+        raise InputShapeError("frames", "(T, V, 3)", frames.shape)
+    return np.linalg.norm(np.diff(frames, axis=0), axis=-1).max(axis=-1).astype(np.float32)
+
+
+def realism(frames: np.ndarray, faces: np.ndarray, rest: np.ndarray, edges: np.ndarray) -> dict[str, float]:
+    """Realism metrics of one garment sequence (DESIGN.md §5), all frames pooled:
+
+    edge_p1, edge_p99 : 1st and 99th percentile of edge length / rest length (compression,
+                        stretch; a knot compresses, a balloon or a spike stretches)
+    edge_max          : the largest edge ratio (a single spike)
+    folded_pct        : mean over frames of the % of faces folded over by > 90 deg against a
+                        neighbour (``folded_face_share``)
+    roughness_deg     : RMS hinge angle, degrees (compare with the reference's on the same frames:
+                        the ratio is reported by the judge)
+    jump_max_m        : largest vertex displacement between two consecutive frames, metres
+    jump_p99_m        : 99th percentile over frames of the per-frame largest displacement
+
+    frames : (T, V, 3) metres ; faces : (F, 3) ; rest : (V, 3) ; edges : (E, 2)
+    """
+    frames = np.asarray(frames, np.float32)
+    if frames.ndim != 3:
+        raise InputShapeError("frames", "(T, V, 3)", frames.shape)
+    hinges = interior_hinges(faces)
+    ratio = edge_length_ratios(frames, rest, edges)
+    angles = hinge_angles(frames, faces, hinges)
+    jumps = vertex_jumps(frames) if len(frames) > 1 else np.zeros(1, np.float32)
+    return {
+        "edge_p1": float(np.percentile(ratio, 1)),
+        "edge_p99": float(np.percentile(ratio, 99)),
+        "edge_max": float(ratio.max()),
+        "folded_pct": 100.0 * float(folded_face_share(angles, hinges, len(faces)).mean()),
+        "roughness_deg": float(np.degrees(np.sqrt(np.mean(angles.astype(np.float64) ** 2)))),
+        "jump_max_m": float(jumps.max()),
+        "jump_p99_m": float(np.percentile(jumps, 99)),
+    }

@@ -47,7 +47,7 @@ WINDOW_FRAMES = 3
 # generalise to the dance clip (docs/evaluation.md, "An unseen motion").
 TRAIN_CLIPS = ("01_14", "02_01", "02_03", "02_04", "02_05", "02_09", "131_01")
 VALIDATION_CLIP = "02_02"
-TEST_ONLY_CLIPS = ("01_01",)
+TEST_ONLY_CLIPS = ("01_01", "02_07")  # the judge's test clips (training.protocol): reported only
 # Clips that are never trained on: 01_01, and 131_03 (the bundled "dance" clip), which is the
 # second validation of the wrinkle GRUs (a clip not trained on, ``training.evaluate --clip dance``).
 HELD_OUT_CLIPS = TEST_ONLY_CLIPS + ("131_03",)
