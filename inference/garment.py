@@ -167,6 +167,12 @@ class GarmentAsset:
         }
 
 
+def catalog_ids(assets_dir: Path | str = ASSETS_DIR) -> list[str]:
+    """The catalog's garment ids without loading the garments: the folders
+    ``assets_dir/garments/<id>/`` that hold a ``garment.json``, sorted."""
+    return sorted(p.parent.name for p in (Path(assets_dir) / "garments").glob("*/garment.json"))
+
+
 class GarmentCatalog:
     """All garments under ``<assets_dir>/garments/<id>/``, loaded once (a few MB)."""
 
@@ -176,12 +182,11 @@ class GarmentCatalog:
     @classmethod
     def load(cls, assets_dir: Path | str = ASSETS_DIR) -> "GarmentCatalog":
         """Load every ``assets_dir/garments/*/garment.json`` garment (``assets_dir`` defaults to the repo's ``assets``)."""
-        root = Path(assets_dir) / "garments"
         garments = {}
-        for meta in sorted(root.glob("*/garment.json")):
-            g = GarmentAsset.load(meta.parent)
-            if g.id != meta.parent.name:
-                raise ValueError(f"{meta}: id {g.id!r} differs from its folder name")
+        for folder_id in catalog_ids(assets_dir):
+            g = GarmentAsset.load(Path(assets_dir) / "garments" / folder_id)
+            if g.id != folder_id:
+                raise ValueError(f"{g.directory / 'garment.json'}: id {g.id!r} differs from its folder name")
             garments[g.id] = g
         return cls(garments)
 

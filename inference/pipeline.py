@@ -2,9 +2,10 @@
 
 Thesis eq. 4.2-4.3: T_c(beta, theta) = T_bar_c + R_G(beta) + R_L(beta, gamma_1..t), then
 M_c = W(T_c, beta, theta, W_c), then the collision post-process of ch. 4.2.1. Each stage is a
-function over batched float32 arrays. The learned models (``inference.learned``: fit MLP R_G
-and wrinkle GRU R_L, ONNX, trained self-supervised with the SNUG losses) are the default; the
-baselines stay selectable (see DrapeOptions):
+function over batched float32 arrays. Each garment runs one fit and one dynamics method
+(DrapeOptions; where the request names none, the garment's default, ``inference.defaults``); the
+learned ones are ``inference.learned``'s fit MLP R_G and wrinkle GRU R_L (ONNX, trained
+self-supervised with the SNUG losses):
 
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
@@ -21,11 +22,11 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blend_skinning
+from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, resolve_methods
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
@@ -34,9 +35,6 @@ from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
 from inference.repair import repair_layers
 
-FitMode = Literal["learned", "retarget", "none"]
-DynamicsMode = Literal["learned", "none"]
-
 
 @dataclass(frozen=True)
 class DrapeOptions:
@@ -44,16 +42,20 @@ class DrapeOptions:
     body shape + the template's collision correction) or 'none' (plain LBS of the neutral
     template). dynamics: 'learned' (the wrinkle GRU R_L over the motion descriptor) or 'none'.
     The learned modes need the garment's models (``MissingModelError`` otherwise).
-    Default: the learned model, thesis eq. 4.2 (retarget + R_G + R_L, then LBS); the baselines
-    stay selectable for comparison (docs/evaluation.md compares the three).
+    None (the default): each garment runs its own default (``inference.defaults``,
+    ``assets/models/defaults.json``: the learned model, thesis eq. 4.2, where it beats the
+    baselines on the validation protocol, docs/evaluation.md; else the retarget baseline), so one
+    drape may layer a learned garment over a retargeted one. A value applies to every garment;
+    fit 'none' is only ever such an explicit, uniform choice (it changes the skinning transforms
+    and the guard's rest body of the whole drape).
     margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost.
     lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``).
     guard_check: the guard's closest-triangle check after its plane push (``inference.guard``).
     guard_exact: last, move every garment vertex still inside the body, by the exact winding
     number, to the outside (``inference.repair``; after the layers' pushes, with each layer's margin)."""
 
-    fit: FitMode = "learned"
-    dynamics: DynamicsMode = "learned"
+    fit: FitMode | None = None
+    dynamics: DynamicsMode | None = None
     guard: bool = True
     margin_m: float = 0.002
     layer_gap_m: float = 0.003
@@ -93,10 +95,12 @@ class PoseSequence:
 
 @dataclass
 class DrapedGarment:
-    """One garment's result: posed vertices (T, V, 3) float32, Z-up metres, and its asset."""
+    """One garment's result: posed vertices (T, V, 3) float32, Z-up metres, its asset, and the
+    method it ran (the request's options resolved against the garment's default)."""
 
     asset: GarmentAsset
     vertices: np.ndarray
+    method: Method
 
 
 @dataclass
@@ -188,12 +192,15 @@ def drape(
     neutral: BodyShape | None = None,
     models: LearnedModels | None = None,
     segments: Sequence[int] | None = None,
+    defaults: DefaultMethods | None = None,
 ) -> DrapeResult:
     """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
     (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none');
     ``models`` the learned-model registry (default: ``inference.learned.default_models()``);
     ``segments``: frame counts of independent motions concatenated in ``motion`` (cross-request
-    batching; default one motion): the motion descriptor and the wrinkle GRU restart at each."""
+    batching; default one motion): the motion descriptor and the wrinkle GRU restart at each;
+    ``defaults``: each garment's default method, used where ``options.fit`` / ``options.dynamics``
+    is None (default: ``inference.defaults.default_methods()``, the shipped table)."""
     timer = _Timer()
     if shape.rest_vertices.shape[0] != 1:
         raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
@@ -203,6 +210,9 @@ def drape(
     if min(segments) < 1 or sum(segments) != motion.num_frames:
         raise InputShapeError("segments", f"positive frame counts summing to {motion.num_frames}", tuple(segments))
 
+    # per garment: the request's fit / dynamics, else the garment's default (never fit 'none',
+    # which stays a uniform option: it changes the skinning transforms and the guard's rest body)
+    methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults)
     with timer("shape"):
         hm08 = body.hm08_vertices(shape)
     if options.lift_arms:
@@ -224,23 +234,23 @@ def drape(
 
     learned: list[LearnedGarment | None] = [None] * len(garments)
     gamma = None
-    if options.fit == "learned" or options.dynamics == "learned":
+    if any(m.fit == "learned" or m.dynamics == "learned" for m in methods):
         models = models or default_models()
         with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
-            field = "/options/fit" if options.fit == "learned" else "/options/dynamics"
-            learned = [models.get(g.id, field) for g in garments]
-    if options.dynamics == "learned":
+            learned = [models.get(g.id, "/options/fit" if m.fit == "learned" else "/options/dynamics")
+                       if "learned" in (m.fit, m.dynamics) else None for g, m in zip(garments, methods)]
+    if any(m.dynamics == "learned" for m in methods):
         with timer("descriptor"):  # per segment: finite differences never straddle two motions
             bounds = np.cumsum([0, *segments])
             gamma = np.concatenate([motion_descriptor(motion.rotations[None, a:b], motion.translation[None, a:b], motion.fps)
                                     for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
 
     unposed_fits, posed = [], []
-    for g, lg in zip(garments, learned):
+    for g, m, lg in zip(garments, methods, learned):
         with timer("fit"):
-            unposed = fit_garment(g, hm08, options.fit, shape.phenotypes, lg)
+            unposed = fit_garment(g, hm08, m.fit, shape.phenotypes, lg)
         with timer("dynamics"):
-            unposed_t = garment_dynamics(unposed, motion.num_frames, options.dynamics, shape.phenotypes, gamma, lg, segments)
+            unposed_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments)
         with timer("skin"):
             posed.append(linear_blend_skinning(unposed_t, g.skin_weights, garment_transforms))
         unposed_fits.append(unposed)
@@ -260,7 +270,7 @@ def drape(
                                       skin=plans.skin)[0]
 
     return DrapeResult(
-        garments=[DrapedGarment(asset=g, vertices=p[0]) for g, p in zip(garments, posed)],
+        garments=[DrapedGarment(asset=g, vertices=p[0], method=m) for g, p, m in zip(garments, posed, methods)],
         shape=shape,
         bone_poses=bone_poses[0],
         body_vertices=None if body_vertices is None else body_vertices[0],

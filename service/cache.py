@@ -1,10 +1,11 @@
 """Content-addressed result cache: identical requests (same body, motion, garments, options and
-format) on the same model versions get the same output, from memory.
+format) on the same model versions and garment default methods get the same output, from memory.
 
-The key is the SHA-256 of the canonical JSON of the validated request plus MODEL_VERSIONS and
-the API version; it doubles as the response's ETag. The ETag is weak (``W/"..."``): a result
-computed inside a merged batch may differ from the solo one at a few guard-pushed vertices
-(service/batching.py), i.e. equivalent, not byte-identical. Concurrent identical requests are
+The key is the SHA-256 of the canonical JSON of the validated request plus MODEL_VERSIONS, the
+garments' default methods (what a request's null fit / dynamics runs: a changed defaults file
+changes the result) and the API version; it doubles as the response's ETag. The ETag is weak
+(``W/"..."``): a result computed inside a merged batch may differ from the solo one at a few
+guard-pushed vertices (service/batching.py), i.e. equivalent, not byte-identical. Concurrent identical requests are
 coalesced: one computes, the others await it (single flight).
 """
 from __future__ import annotations
@@ -16,13 +17,15 @@ import threading
 from collections import OrderedDict
 from typing import Awaitable, Callable
 
+from inference.defaults import DefaultMethods
 from service.runtime import MODEL_VERSIONS, DrapeOutput
 from service.schemas import DrapeRequest
 
 
-def request_key(request: DrapeRequest, api_version: str) -> str:
+def request_key(request: DrapeRequest, api_version: str, defaults: DefaultMethods) -> str:
+    methods = {gid: [e["fit"], e["dynamics"]] for gid, e in defaults.as_dict().items()}  # not the reasons: they change no output
     canonical = json.dumps(
-        {"request": request.model_dump(mode="json"), "models": MODEL_VERSIONS, "api": api_version},
+        {"request": request.model_dump(mode="json"), "models": MODEL_VERSIONS, "defaults": methods, "api": api_version},
         sort_keys=True, separators=(",", ":"),
     )
     return hashlib.sha256(canonical.encode()).hexdigest()

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from inference.defaults import DefaultMethods, default_methods
 from service.batching import merge_key
 from service.config import Settings
 from service.errors import ProblemDetail, ProblemException
@@ -196,6 +197,7 @@ class WorkerPool:
         self._item_s = 0.0  # moving average of a drape's share of its batch's time, for admission
         self._busy_items = 0
         self._lock = threading.Lock()
+        self.defaults: DefaultMethods | None = None  # each garment's default method, for the merge key (set by start)
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
@@ -208,6 +210,8 @@ class WorkerPool:
             if self.runtime is None:
                 self.runtime = await asyncio.to_thread(Runtime.load, s)
             self.workers = [ThreadWorker(i, self.runtime) for i in range(s.workers)]
+        # the runtime's table (process workers each load the same file at their start)
+        self.defaults = self.runtime.defaults if self.runtime is not None else default_methods(s.assets_dir)
         for w in self.workers:
             self._idle.put_nowait(w)
         self.metrics.workers_alive.set(len(self.workers))
@@ -272,7 +276,7 @@ class WorkerPool:
                                    headers={"Retry-After": str(self._retry_after_s())})
         loop = asyncio.get_running_loop()
         timeout_s = timeout_s or self.settings.request_timeout_s
-        item = _Item("drape", (request,), loop.create_future(), loop.time() + timeout_s, key=merge_key(request), enqueued=loop.time())
+        item = _Item("drape", (request,), loop.create_future(), loop.time() + timeout_s, key=merge_key(request, self.defaults), enqueued=loop.time())
         self._enqueue(item)
         try:
             return await asyncio.wait_for(asyncio.shield(item.future), timeout_s)
@@ -414,9 +418,12 @@ class WorkerPool:
     def _observe(self, outcome) -> None:
         if isinstance(outcome, DrapeOutput):
             for stage, ms in outcome.timings_ms.items():
-                if stage in STAGE_MODELS:  # label: the model this request ran at that stage
+                if stage in STAGE_MODELS:  # label: the model(s) this request ran at that stage
                     model = STAGE_MODELS[stage]
-                    self.metrics.inference_ms.labels(stage, outcome.model_versions.get(model, MODEL_VERSIONS[model])).observe(ms)
+                    version = outcome.model_versions.get(model, MODEL_VERSIONS[model])
+                    if isinstance(version, dict):  # per garment (fit, dynamics): the distinct versions, sorted
+                        version = "+".join(sorted(set(version.values())))
+                    self.metrics.inference_ms.labels(stage, version).observe(ms)
 
 
 def _settle(item: _Item, outcome) -> None:

@@ -1,4 +1,5 @@
-"""What the service holds in memory (body model, garment catalog, clips) and the drape work.
+"""What the service holds in memory (body model, garment catalog and each garment's default
+method, clips) and the drape work.
 
 Requests are turned into pipeline inputs here (motion import, retargeting, resampling, frame and
 vertex limits), run through the pipeline (several compatible requests merged into one call, see
@@ -12,12 +13,14 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
+from inference.defaults import DEFAULTS_FILE, DefaultMethods, Method, resolve_methods
 from inference.errors import InputValueError
 from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
 from inference.garment import GarmentAsset, GarmentCatalog
@@ -27,7 +30,7 @@ from inference.motion.resample import resample_motion
 from inference.motion.retarget import retarget
 from inference.motion.self_contact import lift_arms
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape
-from service.batching import PER_FRAME_DYNAMICS, concatenate_results, merge_key, merge_motions, split_result
+from service.batching import concatenate_results, merge_key, merge_motions, per_frame, split_result
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import BvhMotion, ClipMotion, DrapeRequest, PoseMotion
@@ -41,8 +44,8 @@ MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
     "dynamics": "none",
-    "learned_fit": "snug-fit-v3",  # options.fit = 'learned', the default (assets/models/<garment>/fit.onnx)
-    "learned_dynamics": "snug-gru-v6",  # options.dynamics = 'learned', the default (wrinkle.onnx); v6: the wider output basis (every garment)
+    "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)
+    "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.guard_check, the default)
     "guard_plain": "plane-push-v3",  # options.guard_check = false: the push alone (v3: farther limbs)
     "repair": "winding-repair-v1",  # options.guard_exact, the default (inference/repair.py)
@@ -50,12 +53,14 @@ MODEL_VERSIONS = {
 }
 
 
-def used_model_versions(options) -> dict[str, str]:
-    """The versions of the models a request's options ran (its output metadata): body, arms, fit,
-    dynamics, guard and repair (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
-    fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}[options.fit]
-    dynamics = MODEL_VERSIONS["learned_dynamics"] if options.dynamics == "learned" else "none"
-    return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none", "fit": fit, "dynamics": dynamics,
+def used_model_versions(options, methods: Mapping[str, Method]) -> dict[str, str | dict[str, str]]:
+    """The versions of the models a request ran (its output metadata): body, arms, guard and
+    repair from its options; fit and dynamics per garment id from ``methods``, the method each
+    garment ran (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
+    fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}
+    dynamics = {"learned": MODEL_VERSIONS["learned_dynamics"], "none": "none"}
+    return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none",
+            "fit": {gid: fit[m.fit] for gid, m in methods.items()}, "dynamics": {gid: dynamics[m.dynamics] for gid, m in methods.items()},
             "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard else "none",
             "repair": MODEL_VERSIONS["repair"] if options.guard and options.guard_exact else "none"}
 
@@ -84,7 +89,7 @@ class DrapeOutput:
     payload: bytes
     headers: dict[str, str]
     timings_ms: dict[str, float] = field(default_factory=dict)
-    model_versions: dict[str, str] = field(default_factory=dict)  # ``used_model_versions`` of the request
+    model_versions: dict[str, str | dict[str, str]] = field(default_factory=dict)  # ``used_model_versions`` of the request
 
 
 @dataclass
@@ -96,15 +101,17 @@ class PreparedDrape:
     motion: PoseSequence
     assets: list[GarmentAsset]  # layer order
     options: DrapeOptions
+    methods: list[Method]  # per asset: the request's fit / dynamics, else the garment's default
     t0: float  # perf_counter at the start of the work (for the total time)
 
 
 class Runtime:
-    def __init__(self, settings: Settings, body: BodyModel, catalog: GarmentCatalog, clips: ClipLibrary):
+    def __init__(self, settings: Settings, body: BodyModel, catalog: GarmentCatalog, clips: ClipLibrary, defaults: DefaultMethods):
         self.settings = settings
         self.body = body
         self.catalog = catalog
         self.clips = clips
+        self.defaults = defaults  # each garment's default method (assets/models/defaults.json)
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
         self._clip_cache: OrderedDict = OrderedDict()
         self._clip_lock = threading.Lock()
@@ -112,10 +119,12 @@ class Runtime:
     @classmethod
     def load(cls, settings: Settings) -> "Runtime":
         t0 = time.perf_counter()
-        body = BodyModel.load(settings.assets_dir / "body")
         catalog = GarmentCatalog.load(settings.assets_dir)
+        # a bad defaults file (unknown garment or mode, a garment without one) stops the start-up here
+        defaults = DefaultMethods.load(settings.assets_dir / DEFAULTS_FILE, catalog.ids())
+        body = BodyModel.load(settings.assets_dir / "body")
         clips = ClipLibrary(settings.assets_dir)
-        runtime = cls(settings, body, catalog, clips)
+        runtime = cls(settings, body, catalog, clips, defaults)
         log.info("loaded assets in %.2f s", time.perf_counter() - t0)
         return runtime
 
@@ -212,21 +221,23 @@ class Runtime:
             )
         options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body,
                                lift_arms=o.lift_arms, guard_check=o.guard_check, guard_exact=o.guard_exact)
-        return PreparedDrape(request, shape, motion, assets, options, t0)
+        methods = resolve_methods([a.id for a in assets], o.fit, o.dynamics, self.defaults)
+        return PreparedDrape(request, shape, motion, assets, options, methods, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:
         """Run the pipeline for several prepared requests: requests with the same merge key (same
-        body, garments and options) go through one ``drape`` call on their concatenated frames."""
+        body, garments, resolved methods and options) go through one ``drape`` call on their
+        concatenated frames."""
         groups: dict[object, list[int]] = {}
         for i, p in enumerate(prepared):
-            key = merge_key(p.request)
+            key = merge_key(p.request, self.defaults)
             groups.setdefault(key if key is not None else ("solo", i), []).append(i)
         results: list[DrapeResult | None] = [None] * len(prepared)
         for members in groups.values():
             first = prepared[members[0]]
             motion = merge_motions([prepared[i].motion for i in members])
             merged = drape(self.body, first.shape, motion, first.assets, first.options, neutral=self.neutral_shape,
-                           segments=[prepared[i].motion.num_frames for i in members])
+                           segments=[prepared[i].motion.num_frames for i in members], defaults=self.defaults)
             for i, r in zip(members, split_result(merged, [prepared[i].motion for i in members])):
                 results[i] = r
         return results  # type: ignore[return-value]
@@ -235,7 +246,8 @@ class Runtime:
         """Encode one request's result as glb or npz."""
         request, shape, motion, o = p.request, p.shape, p.motion, p.request.options
         t_export = time.perf_counter()
-        versions = used_model_versions(o)
+        # what each garment ran (its resolved method), not the request's options (null: the default)
+        versions = used_model_versions(o, {g.asset.id: g.method for g in result.garments})
         metadata = {
             "frames": motion.num_frames,
             "phenotypes": dict(zip(PHENOTYPE_LABELS, map(float, shape.phenotypes[0]))),
@@ -243,7 +255,7 @@ class Runtime:
         }
         tracks = [
             GarmentTrack(name=g.asset.id, vertices=g.vertices, faces=g.asset.faces, uvs=g.asset.uvs, face_uvs=g.asset.face_uvs,
-                         metadata={"layer": g.asset.layer, "category": g.asset.category})
+                         metadata={"layer": g.asset.layer, "category": g.asset.category, "fit": g.method.fit, "dynamics": g.method.dynamics})
             for g in result.garments
         ]
         body_track = None
@@ -303,8 +315,8 @@ class Runtime:
         called after each chunk and returns True to cancel (then the result is None)."""
         p = self.prepare(request, RequestLimits.job(self.settings))
         total = p.motion.num_frames
-        # chunks only where every stage is per frame: a stateful dynamics model runs in one call
-        chunk = self.settings.job_chunk_frames if request.options.dynamics in PER_FRAME_DYNAMICS else total
+        # chunks only where every garment's stages are per frame: a stateful dynamics model runs in one call
+        chunk = self.settings.job_chunk_frames if per_frame(p.methods) else total
         if chunk < total and p.options.lift_arms:
             # the arm correction smooths over neighbouring frames: run it once on the whole motion
             lifted, _ = lift_arms(self.body, p.shape, p.motion.rotations, p.motion.translation)
@@ -315,7 +327,7 @@ class Runtime:
         for start in range(0, total, chunk):
             m = p.motion
             part = PreparedDrape(p.request, p.shape, PoseSequence(m.rotations[start:start + chunk], m.translation[start:start + chunk], m.fps),
-                                 p.assets, p.options, p.t0)
+                                 p.assets, p.options, p.methods, p.t0)
             parts.append((part, self.drape_batch([part])[0]))
             if progress is not None and progress(min(start + chunk, total), total):
                 return None

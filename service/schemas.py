@@ -77,14 +77,18 @@ class GarmentSpec(_Strict):
 class DrapeOptions(_Strict):
     fps: float = Field(30.0, ge=1.0, le=120.0, allow_inf_nan=False, description="output frame rate")
     include_body: bool = Field(True, description="add the posed body to the output")
-    fit: Literal["learned", "retarget", "none"] = Field(
-        "learned",
-        description="garment fit to the body shape: 'learned' (default) = the .mhclo retarget + the fit regressor R_G "
-        "(ONNX, trained self-supervised on the SNUG physics energies); 'retarget' = the .mhclo retarget baseline; "
-        "'none' = plain LBS of the neutral template",
+    fit: Literal["learned", "retarget", "none"] | None = Field(
+        None,
+        description="garment fit to the body shape, for every garment of the request: 'learned' = the .mhclo retarget + "
+        "the fit regressor R_G (ONNX, trained self-supervised on the SNUG physics energies); 'retarget' = the .mhclo "
+        "retarget baseline; 'none' = plain LBS of the neutral template. Null or omitted (default): each garment's own "
+        "default fit, the method chosen for it on the validation protocol (GET /v1/garments/{id}, default_method)",
     )
-    dynamics: Literal["learned", "none"] = Field(
-        "learned", description="dynamic wrinkles: 'learned' (default) = the wrinkle GRU R_L over the motion descriptor (eq. 6.17); 'none' = static fit"
+    dynamics: Literal["learned", "none"] | None = Field(
+        None,
+        description="dynamic wrinkles, for every garment of the request: 'learned' = the wrinkle GRU R_L over the motion "
+        "descriptor (eq. 6.17); 'none' = static fit. Null or omitted (default): each garment's own default dynamics "
+        "(GET /v1/garments/{id}, default_method)",
     )
     guard: bool = Field(True, description="push garment vertices out of the body after skinning")
     margin_m: float = Field(0.002, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")
@@ -126,6 +130,15 @@ DRAPE_EXAMPLE = {
 
 
 # ------------------------------------------------------------------ responses
+class DefaultMethodResponse(BaseModel):
+    """What a drape runs for this garment when its options name no fit or dynamics."""
+
+    fit: Literal["learned", "retarget"]
+    dynamics: Literal["learned", "none"]
+    reason: str = Field(description="why this method is the garment's default, in one sentence")
+    evidence: str = Field(description="where the measurements behind it are")
+
+
 class GarmentSummary(BaseModel):
     id: str
     name: str
@@ -134,6 +147,8 @@ class GarmentSummary(BaseModel):
     vertices: int
     faces: int
     template_url: str
+    default_method: DefaultMethodResponse = Field(description="the fit and dynamics a drape runs for this garment when "
+                                                              "options.fit / options.dynamics are omitted")
 
 
 class GarmentDetail(GarmentSummary):

@@ -1,5 +1,6 @@
 """Content-addressed result cache: identical requests are served from memory with the same
-(weak) ETag; If-None-Match answers 304; any change of request or model version changes the key."""
+(weak) ETag; If-None-Match answers 304; any change of request, model version or garment default
+method changes the key."""
 from __future__ import annotations
 
 import asyncio
@@ -7,6 +8,7 @@ import asyncio
 import pytest
 from fastapi.testclient import TestClient
 
+from inference.defaults import DefaultMethod, DefaultMethods, default_methods
 from service import cache as cache_module
 from service.app import create_app
 from service.cache import ResultCache, etag_matches, request_key
@@ -42,13 +44,21 @@ def test_if_none_match_answers_304(cache_client):
     assert cache_client.post("/v1/drape", json=BODY, headers={"If-None-Match": 'W/"other"'}).status_code == 200
 
 
-def test_key_covers_request_and_model_versions(monkeypatch):
+def test_key_covers_request_model_versions_and_default_methods(monkeypatch):
     r = DrapeRequest.model_validate(BODY)
-    key = request_key(r, "1")
-    assert key == request_key(DrapeRequest.model_validate(dict(reversed(list(BODY.items())))), "1")  # canonical
-    assert key != request_key(DrapeRequest.model_validate({**BODY, "format": "glb"}), "1")
+    shipped = default_methods()
+    key = request_key(r, "1", shipped)
+    assert key == request_key(DrapeRequest.model_validate(dict(reversed(list(BODY.items())))), "1", shipped)  # canonical
+    assert key != request_key(DrapeRequest.model_validate({**BODY, "format": "glb"}), "1", shipped)
+    # another default method for a garment (what omitted options run) is another key; another reason is not
+    entries = {gid: DefaultMethod(**e) for gid, e in shipped.as_dict().items()}
+    t = entries["tshirt"]
+    other = DefaultMethod("retarget" if t.fit == "learned" else "learned", t.dynamics, t.reason, t.evidence)
+    assert key != request_key(r, "1", DefaultMethods({**entries, "tshirt": other}))
+    reworded = DefaultMethod(t.fit, t.dynamics, t.reason + " (reworded)", t.evidence)
+    assert key == request_key(r, "1", DefaultMethods({**entries, "tshirt": reworded}))
     monkeypatch.setitem(cache_module.MODEL_VERSIONS, "fit", "learned-v2")
-    assert key != request_key(r, "1")
+    assert key != request_key(r, "1", shipped)
     assert etag_matches(f'W/"{key}", "x"', key) and etag_matches(f'"{key}"', key) and etag_matches("*", key)
     assert not etag_matches(None, key) and not etag_matches('"abc"', key)
 

@@ -135,3 +135,26 @@ def test_a_job_that_keeps_losing_its_owner_fails_after_max_attempts(tmp_path):
     record = store.get(job.id)
     assert record.state == "failed" and record.error["status"] == 500
     assert store.counts()["failed"] == 1
+
+
+def test_a_job_chunks_only_where_every_garments_resolved_dynamics_is_per_frame(tmp_path, runtime):
+    """Chunking follows each garment's method as run (options, else its default), not the raw
+    options: a default-learned garment beside a default-static one runs in one call."""
+    from inference.defaults import DefaultMethod, DefaultMethods
+    from service.runtime import Runtime
+
+    entry = {"reason": "test", "evidence": "tests/test_jobs.py"}
+    table = {g: DefaultMethod("retarget", "none", **entry) for g in runtime.catalog.ids()}
+    table["trousers"] = DefaultMethod("learned", "learned", **entry)
+    rt = Runtime(make_settings(tmp_path, job_chunk_frames=4), runtime.body, runtime.catalog, runtime.clips, DefaultMethods(table))
+
+    def chunks(garments, **options):
+        calls = []
+        request = DrapeRequest.model_validate({**job_body(10, clip="walk", **options), "garments": [{"id": g} for g in garments]})
+        assert rt.run_job(request, lambda done, total: calls.append(done) or False) is not None
+        return calls
+
+    assert chunks(["tshirt"]) == [0, 4, 8, 10]  # static by default: chunks of 4 frames
+    assert chunks(["tshirt", "trousers"]) == [0, 10]  # the trousers' GRU: one call
+    assert chunks(["tshirt", "trousers"], dynamics="none") == [0, 4, 8, 10]  # named for all: static
+    assert chunks(["tshirt"], dynamics="learned") == [0, 10]

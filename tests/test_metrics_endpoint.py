@@ -32,7 +32,8 @@ def _samples(client) -> dict:
 
 
 def test_metrics_cover_requests_latency_queue_batches_inference_jobs(metrics_client):
-    body = {"motion": {"type": "clip", "clip": "walk", "duration_s": 0.2}, "garments": [{"id": "tshirt"}], "format": "npz"}
+    body = {"motion": {"type": "clip", "clip": "walk", "duration_s": 0.2}, "garments": [{"id": "tshirt"}], "format": "npz",
+            "options": {"fit": "learned", "dynamics": "learned"}}
     assert metrics_client.post("/v1/drape", json=body).status_code == 200
     metrics_client.get("/v1/garments/nope")
     m = _samples(metrics_client)
@@ -42,7 +43,7 @@ def test_metrics_cover_requests_latency_queue_batches_inference_jobs(metrics_cli
     assert ("tryon_queue_depth", ()) in m
     assert m[("tryon_batch_size_count", ())] >= 1
     assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["guard"]), ("stage", "guard")))] >= 1
-    # the default request runs the learned models: the stage label names them
+    # a request for the learned models: the stage label names them
     assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["learned_fit"]), ("stage", "fit")))] >= 1
     assert m[("tryon_inference_ms_count", (("model", MODEL_VERSIONS["learned_dynamics"]), ("stage", "dynamics")))] >= 1
     assert ("tryon_inference_ms_count", (("model", MODEL_VERSIONS["fit"]), ("stage", "fit"))) not in m

@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from inference.defaults import DefaultMethod, DefaultMethods, default_methods
 from service.batching import merge_key
 from service.config import Settings
 from service.errors import ProblemException
@@ -30,6 +31,7 @@ class FakeRuntime:
 
     def __init__(self, delay_s=0.05):
         self.delay_s = delay_s
+        self.defaults = default_methods()
         self.batches: list[int] = []
         self.lock = threading.Lock()
 
@@ -47,12 +49,28 @@ def _pool(runtime, **kw) -> WorkerPool:
 
 
 def test_merge_key_groups_same_body_garments_options():
+    defaults = default_methods()
     a, b = _request("walk"), _request("run", duration_s=1.0)
-    assert merge_key(a) == merge_key(b)  # motion and length may differ
-    assert merge_key(a) != merge_key(_request(garments=("trousers",)))
-    assert merge_key(a) != merge_key(_request(guard=False))
+    assert merge_key(a, defaults) == merge_key(b, defaults)  # motion and length may differ
+    assert merge_key(a, defaults) != merge_key(_request(garments=("trousers",)), defaults)
+    assert merge_key(a, defaults) != merge_key(_request(guard=False), defaults)
     other_body = DrapeRequest.model_validate({**a.model_dump(), "body": {"phenotypes": {"weight": 0.9}}})
-    assert merge_key(a) != merge_key(other_body)
+    assert merge_key(a, defaults) != merge_key(other_body, defaults)
+    assert merge_key(_request(garments=("nope",)), defaults) is None  # unknown garment: alone, answers its own 422
+
+
+def test_merge_key_uses_the_resolved_methods():
+    entry = dict(reason="test", evidence="none")
+    defaults = DefaultMethods({"tshirt": DefaultMethod("retarget", "none", **entry), "trousers": DefaultMethod("learned", "learned", **entry)})
+    omitted = _request(garments=("trousers", "tshirt"))
+    # the same methods, named or left to the defaults, share a call; other methods do not
+    assert merge_key(omitted, defaults) == merge_key(_request(garments=("trousers", "tshirt"), fit=None, dynamics=None), defaults)
+    assert merge_key(omitted, defaults) != merge_key(_request(garments=("trousers", "tshirt"), fit="learned", dynamics="learned"), defaults)
+    assert merge_key(_request(fit="retarget", dynamics="none"), defaults) == merge_key(_request(), defaults)
+    assert merge_key(_request(fit="learned"), defaults) != merge_key(_request(), defaults)
+    # the key follows the table: the same request under other defaults
+    swapped = DefaultMethods({"tshirt": DefaultMethod("learned", "learned", **entry), "trousers": DefaultMethod("learned", "learned", **entry)})
+    assert merge_key(_request(), swapped) == merge_key(_request(fit="learned", dynamics="learned"), defaults)
 
 
 def test_concurrent_compatible_requests_are_batched():

@@ -40,6 +40,10 @@ def test_catalog_routes(client):
     assert {"tshirt", "longsleeve", "trousers", "dress", "jacket"} <= ids
     detail = client.get("/v1/garments/tshirt").json()
     assert detail["material"]["density_kg_m3"] == pytest.approx(426.0)
+    # each garment's default method is the shipped file's entry, in the list and the detail
+    shipped = json.loads((REPO_ROOT / "assets" / "models" / "defaults.json").read_text())["garments"]
+    assert {g["id"]: g["default_method"] for g in garments} == shipped
+    assert all(client.get(f"/v1/garments/{i}").json()["default_method"] == shipped[i] for i in ids)
     r = client.get("/v1/garments/tshirt/template.glb")
     assert r.status_code == 200 and r.content[:4] == b"glTF"
     _problem(client.get("/v1/garments/nope"), 404)
@@ -156,12 +160,13 @@ def test_learned_models_are_selectable(client):
         assert r.status_code == 200, r.text
         return np.load(io.BytesIO(r.content), allow_pickle=False)["garment_0_vertices"]
 
-    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz", "options": {"include_body": False}})
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz", "options": {"include_body": False, "fit": "learned", "dynamics": "learned"}})
     meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
-    assert meta["model_versions"]["fit"].startswith("snug-fit") and meta["model_versions"]["dynamics"].startswith("snug-gru")
+    assert meta["model_versions"]["fit"]["tshirt"].startswith("snug-fit") and meta["model_versions"]["dynamics"]["tshirt"].startswith("snug-gru")
     base = verts({"fit": "retarget", "dynamics": "none"})
     learned = verts({"fit": "learned", "dynamics": "learned"})
-    assert np.array_equal(verts({}), learned)  # the learned model is the default
+    default = client.get("/v1/garments/tshirt").json()["default_method"]
+    assert np.array_equal(verts({}), verts({"fit": default["fit"], "dynamics": default["dynamics"]}))  # omitted: the garment's default
     assert base.shape == learned.shape and np.isfinite(learned).all()
     assert np.abs(learned - base).max() > 1e-3  # the models change the garment
     # the wrinkle GRU output varies over time beyond the skinning (frames differ in unposed space)
@@ -224,6 +229,95 @@ def test_exact_repair_leaves_no_vertex_inside_the_body_by_default(client):
     assert versions["repair"] == "winding-repair-v1" and versions_off["repair"] == "none"
     assert inside_off.sum() > 0  # the guard alone leaves a few vertices in the body's folds
     assert inside.sum() == 0
-    assert run({})[1].sum() == 0  # the default (learned) drape too
+    assert run({})[1].sum() == 0  # the garment's default method too
     moved = np.linalg.norm(repaired - plain, axis=-1) > 0
     assert moved.sum() >= inside_off.sum() and moved.mean() < 0.005  # those, and few others
+
+
+def _glb_json(payload: bytes) -> dict:
+    """The JSON chunk of a glb (12-byte header, then chunk length, type, data)."""
+    length = int.from_bytes(payload[12:16], "little")
+    return json.loads(payload[20:20 + length])
+
+
+def test_drape_metadata_names_each_garments_method(client):
+    """Omitted options run each garment's default; the metadata names what each garment ran."""
+    body = {**WALK_TSHIRT, "garments": [{"id": "tshirt"}, {"id": "trousers"}], "motion": {"type": "clip", "clip": "walk", "duration_s": 0.2},
+            "options": {"include_body": False, "guard": False}}
+    defaults = {g: client.get(f"/v1/garments/{g}").json()["default_method"] for g in ("tshirt", "trousers")}
+    versions = {"learned": "snug-", "retarget": "mhclo-retarget", "none": "none"}
+    r = client.post("/v1/drape", json={**body, "format": "npz"})
+    assert r.status_code == 200, r.text
+    meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
+    assert meta["options"]["fit"] is None and meta["options"]["dynamics"] is None  # the request as sent
+    for g in meta["garments"]:
+        d = defaults[g["name"]]
+        assert (g["fit"], g["dynamics"]) == (d["fit"], d["dynamics"])
+        assert meta["model_versions"]["fit"][g["name"]].startswith(versions[d["fit"]])
+        assert meta["model_versions"]["dynamics"][g["name"]].startswith(versions[d["dynamics"]])
+    # an explicit option is what every garment ran, in the glb too (each garment's node and asset.extras)
+    r = client.post("/v1/drape", json={**body, "format": "glb", "options": {**body["options"], "fit": "retarget", "dynamics": "none"}})
+    assert r.status_code == 200, r.text
+    gltf = _glb_json(r.content)
+    extras = [n["extras"] for n in gltf["nodes"] if "fit" in n.get("extras", {})]
+    assert len(extras) == 2 and all((e["fit"], e["dynamics"]) == ("retarget", "none") for e in extras)
+    assert gltf["asset"]["extras"]["model_versions"]["fit"] == {"tshirt": "mhclo-retarget", "trousers": "mhclo-retarget"}
+
+
+def _copy_defaults(tmp_path, **changes):
+    data = json.loads((REPO_ROOT / "assets" / "models" / "defaults.json").read_text())
+    for gid, entry in changes.items():
+        data["garments"][gid].update(entry)
+    path = tmp_path / "defaults.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_a_changed_defaults_file_changes_the_catalog_and_the_drape(tmp_path, settings, runtime, client):
+    """The table alone decides: a copy where the T-shirt ships the retarget baseline and the
+    trousers the learned model (the shipped file is never edited here) sets GET /v1/garments/tshirt,
+    what a drape with the options omitted runs, and its metadata."""
+    from fastapi.testclient import TestClient
+
+    from inference.defaults import DefaultMethods
+    from service.app import create_app
+    from service.runtime import MODEL_VERSIONS, Runtime
+
+    baseline = {"fit": "retarget", "dynamics": "none", "reason": "the baseline wins (test)", "evidence": "docs/evaluation.md"}
+    path = _copy_defaults(tmp_path, tshirt=baseline, trousers={"fit": "learned", "dynamics": "learned"})
+    thread = settings.model_copy(update={"worker_mode": "thread", "workers": 1, "jobs_backend": "off"})
+    changed = Runtime(thread, runtime.body, runtime.catalog, runtime.clips, DefaultMethods.load(path, runtime.catalog.ids()))
+    body = {"motion": {"type": "clip", "clip": "walk", "duration_s": 0.2}, "garments": [{"id": "tshirt"}, {"id": "trousers"}], "format": "npz"}
+
+    def run(c, options):
+        r = c.post("/v1/drape", json={**body, "options": {"include_body": False, "guard": False, **options}})
+        assert r.status_code == 200, r.text
+        z = np.load(io.BytesIO(r.content), allow_pickle=False)
+        meta = json.loads(str(z["metadata"]))
+        return {g["name"]: z[f"garment_{g['index']}_vertices"] for g in meta["garments"]}, meta, r.headers["etag"]
+
+    with TestClient(create_app(thread, changed), raise_server_exceptions=False) as c:
+        assert c.get("/v1/garments/tshirt").json()["default_method"] == baseline
+        verts, meta, etag = run(c, {})
+    assert {g["name"]: (g["fit"], g["dynamics"]) for g in meta["garments"]} == {"tshirt": ("retarget", "none"), "trousers": ("learned", "learned")}
+    assert meta["model_versions"]["fit"] == {"tshirt": MODEL_VERSIONS["fit"], "trousers": MODEL_VERSIONS["learned_fit"]}
+    # each garment equals an explicit drape with its method (guard off: the layers are independent)
+    np.testing.assert_array_equal(verts["tshirt"], run(client, {"fit": "retarget", "dynamics": "none"})[0]["tshirt"])
+    np.testing.assert_array_equal(verts["trousers"], run(client, {"fit": "learned", "dynamics": "learned"})[0]["trousers"])
+
+
+def test_a_bad_defaults_file_stops_the_start_up(tmp_path, settings):
+    """An assets folder whose defaults file names a garment the catalog lacks: the runtime (and
+    so the app's start-up) fails with the file and the id in the message."""
+    from inference.defaults import DefaultMethodsError
+    from service.runtime import Runtime
+
+    assets = tmp_path / "assets"
+    (assets / "models").mkdir(parents=True)
+    for name in ("body", "garments", "motions"):
+        (assets / name).symlink_to(REPO_ROOT / "assets" / name)
+    data = json.loads((REPO_ROOT / "assets" / "models" / "defaults.json").read_text())
+    data["garments"]["cape"] = dict(data["garments"]["tshirt"])
+    (assets / "models" / "defaults.json").write_text(json.dumps(data))
+    with pytest.raises(DefaultMethodsError, match=r"defaults\.json: unknown garment ids \['cape'\]"):
+        Runtime.load(settings.model_copy(update={"assets_dir": assets}))

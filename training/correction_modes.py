@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,8 +52,9 @@ def _rest_corrections(inputs, garment: str, phenotypes: np.ndarray, every: int, 
 
     body, asset = inputs.body, inputs.catalog.get(garment)
     shape, motion = shaped_motion(body, inputs.clip, phenotypes)
-    options = DrapeOptions(lift_arms=False)  # shaped_motion has lifted the arms already
-    raw = drape(body, shape, motion, [asset], DrapeOptions(guard=False, lift_arms=False), neutral=inputs.neutral, models=models).garments[0].vertices[::every]
+    # the learned model, named (not the garment's default); shaped_motion has lifted the arms already
+    options = DrapeOptions(fit="learned", dynamics="learned", lift_arms=False)
+    raw = drape(body, shape, motion, [asset], replace(options, guard=False), neutral=inputs.neutral, models=models).garments[0].vertices[::every]
     guarded = drape(body, shape, motion, [asset], options, neutral=inputs.neutral, models=models).garments[0].vertices[::every]
     _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, ::every], motion.translation[None, ::every])
     blend = np.einsum("vj,tjab->tvab", asset.skin_weights.astype(np.float64), transforms[0, :, :, :3, :3].astype(np.float64))

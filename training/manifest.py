@@ -19,6 +19,7 @@ BUILD_COMMANDS = [
     ("body/", "python -m training.assets.build_body"),
     ("garments/", "python -m training.assets.build_garments"),
     ("motions/", "python -m training.assets.build_motions"),
+    ("models/defaults.json", "hand-written: each garment's default method, from docs/evaluation.md (inference/defaults.py)"),
     ("models/", "see the model's own entry (training config in ONNX metadata)"),
 ]
 

@@ -19,7 +19,7 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
     responses={
         200: {
             "description": "the animated garments (and body): glb (Y-up, metres, morph-target animation) or npz (float32 arrays, Z-up). "
-                           "ETag: a weak tag of the request and the model versions (content-addressed).",
+                           "ETag: a weak tag of the request, the model versions and the garments' default methods (content-addressed).",
             "content": {"model/gltf-binary": {}, "application/x-npz": {}},
             "headers": {"ETag": {"schema": {"type": "string"}}, "X-Cache": {"schema": {"type": "string", "enum": ["hit", "miss", "coalesced"]}}},
         },
@@ -36,7 +36,7 @@ async def post_drape(
     drape_request: DrapeRequest = Body(openapi_examples={"walk_tshirt": {"summary": "neutral body, walk clip, T-shirt", "value": DRAPE_EXAMPLE}}),
 ) -> Response:
     state = request.app.state
-    key = request_key(drape_request, request.app.version)
+    key = request_key(drape_request, request.app.version, state.runtime.defaults)
     etag = etag_of(key)
     if etag_matches(request.headers.get("if-none-match"), key):
         state.metrics.cache.labels("not_modified").inc()

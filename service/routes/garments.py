@@ -1,20 +1,22 @@
-"""Garment catalog: list, detail, template glb."""
+"""Garment catalog: list and detail (each with the garment's default method), template glb."""
 from __future__ import annotations
 
 from fastapi import APIRouter, Path, Request
 from fastapi.responses import FileResponse
 
 from service.errors import ProblemException
-from service.schemas import ID_PATTERN, GarmentDetail, GarmentListResponse, GarmentSummary
+from service.schemas import ID_PATTERN, DefaultMethodResponse, GarmentDetail, GarmentListResponse, GarmentSummary
 
 router = APIRouter(prefix="/v1/garments", tags=["garments"])
 _NOT_FOUND = {404: {"description": "unknown garment", "content": {"application/problem+json": {}}}}
 
 
-def _summary(g) -> dict:
+def _summary(request: Request, g) -> dict:
+    default = request.app.state.runtime.defaults.get(g.id)
     return dict(
         id=g.id, name=g.name, category=g.category, layer=int(g.layer), vertices=int(len(g.template)),
         faces=int(len(g.faces)), template_url=f"/v1/garments/{g.id}/template.glb",
+        default_method=DefaultMethodResponse(**default.as_dict()),
     )
 
 
@@ -28,14 +30,14 @@ def _get(request: Request, garment_id: str):
 @router.get("", response_model=GarmentListResponse)
 def list_garments(request: Request) -> GarmentListResponse:
     catalog = request.app.state.runtime.catalog
-    return GarmentListResponse(garments=[GarmentSummary(**_summary(catalog.get(i))) for i in catalog.ids()])
+    return GarmentListResponse(garments=[GarmentSummary(**_summary(request, catalog.get(i))) for i in catalog.ids()])
 
 
 @router.get("/{garment_id}", response_model=GarmentDetail, responses=_NOT_FOUND)
 def get_garment(request: Request, garment_id: str = Path(pattern=ID_PATTERN)) -> GarmentDetail:
     g = _get(request, garment_id)
     return GarmentDetail(
-        **_summary(g),
+        **_summary(request, g),
         material={k: float(v) for k, v in g.material.items()},
         source=str(g.metadata.get("source", "")),
         licence=str(g.metadata.get("licence", "")),

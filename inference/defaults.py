@@ -1,0 +1,164 @@
+"""Each garment's default method: the fit and dynamics a drape runs when the request names none.
+
+The table is one hand-written file, ``assets/models/defaults.json``, set from the validation
+protocol's results (docs/evaluation.md: the learned model ships as a garment's default only
+where it beats the baselines, otherwise the baseline does):
+
+    {"format": 1,
+     "garments": {"<garment id>": {"fit": "learned" | "retarget", "dynamics": "learned" | "none",
+                                   "reason": "<one sentence>", "evidence": "docs/evaluation.md"}}}
+
+It names every catalog garment and nothing else (``DefaultMethods.load`` checks, so a bad file
+stops the service at start-up). fit 'none' (plain LBS of the neutral template) is never a
+default: it changes the skinning transforms and the guard's rest body of the whole drape, so it
+stays an explicit option that applies to every garment. ``resolve_methods`` turns a request's
+options (None: each garment's own default) into the method each garment runs.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal, NoReturn, get_args
+
+from inference.body import ASSETS_DIR
+from inference.errors import InputValueError
+from inference.garment import catalog_ids
+
+FitMode = Literal["learned", "retarget", "none"]
+DynamicsMode = Literal["learned", "none"]
+FIT_MODES: tuple[str, ...] = get_args(FitMode)
+DYNAMICS_MODES: tuple[str, ...] = get_args(DynamicsMode)
+DEFAULT_FIT_MODES: tuple[str, ...] = ("learned", "retarget")  # fit 'none' is explicit only (module docstring)
+DEFAULTS_FILE = "models/defaults.json"  # relative to the assets folder
+DEFAULTS_FORMAT = 1
+_ENTRY_KEYS = frozenset({"fit", "dynamics", "reason", "evidence"})
+
+
+class DefaultMethodsError(ValueError):
+    """The defaults file is missing, malformed, or does not name exactly the catalog's garments."""
+
+
+@dataclass(frozen=True)
+class Method:
+    """What one garment runs: fit 'learned' | 'retarget' | 'none', dynamics 'learned' | 'none'
+    (``inference.pipeline`` describes each)."""
+
+    fit: FitMode
+    dynamics: DynamicsMode
+
+
+@dataclass(frozen=True)
+class DefaultMethod:
+    """One garment's entry of the defaults file: its default method and why it was chosen."""
+
+    fit: FitMode
+    dynamics: DynamicsMode
+    reason: str
+    evidence: str
+
+    @property
+    def method(self) -> Method:
+        return Method(self.fit, self.dynamics)
+
+    def __post_init__(self):
+        if self.fit not in DEFAULT_FIT_MODES:
+            raise DefaultMethodsError(f"fit {self.fit!r} is not a default fit; expected one of {list(DEFAULT_FIT_MODES)} "
+                                      "(fit 'none' is an explicit option only)")
+        if self.dynamics not in DYNAMICS_MODES:
+            raise DefaultMethodsError(f"dynamics {self.dynamics!r}, expected one of {list(DYNAMICS_MODES)}")
+        for key in ("reason", "evidence"):
+            if not isinstance(getattr(self, key), str) or not getattr(self, key).strip():
+                raise DefaultMethodsError(f"{key} must be a non-empty string")
+
+    def as_dict(self) -> dict[str, str]:
+        return asdict(self)
+
+
+class DefaultMethods:
+    """The defaults table: garment id -> ``DefaultMethod``."""
+
+    def __init__(self, entries: Mapping[str, DefaultMethod], source: str = "defaults"):
+        self._entries = dict(sorted(entries.items()))
+        self.source = source
+
+    @classmethod
+    def from_json(cls, data: object, garment_ids: Iterable[str], source: str = "defaults") -> "DefaultMethods":
+        """Validate the parsed file against the catalog's ``garment_ids`` (``DefaultMethodsError``
+        naming the file and the entry otherwise)."""
+        def fail(message: str) -> NoReturn:
+            raise DefaultMethodsError(f"{source}: {message}")
+
+        if not isinstance(data, dict) or set(data) != {"format", "garments"}:
+            fail('expected an object with exactly the keys "format" and "garments"')
+        if data["format"] != DEFAULTS_FORMAT:
+            fail(f"format {data['format']!r}, expected {DEFAULTS_FORMAT}")
+        garments = data["garments"]
+        if not isinstance(garments, dict):
+            fail('"garments" must be an object: garment id -> {fit, dynamics, reason, evidence}')
+        known = set(garment_ids)
+        unknown, missing = sorted(set(garments) - known), sorted(known - set(garments))
+        if unknown:
+            fail(f"unknown garment ids {unknown}; the catalog has {sorted(known)}")
+        if missing:
+            fail(f"no default method for garments {missing}: every catalog garment needs one")
+        entries = {}
+        for gid, entry in garments.items():
+            if not isinstance(entry, dict) or set(entry) != _ENTRY_KEYS:
+                fail(f"garments.{gid}: expected exactly the keys {sorted(_ENTRY_KEYS)}")
+            try:
+                entries[gid] = DefaultMethod(**entry)
+            except DefaultMethodsError as exc:
+                fail(f"garments.{gid}: {exc}")
+        return cls(entries, source)
+
+    @classmethod
+    def load(cls, path: Path | str, garment_ids: Iterable[str]) -> "DefaultMethods":
+        """Read and validate the defaults file at ``path`` against the catalog's ``garment_ids``."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except OSError as exc:
+            raise DefaultMethodsError(f"{path}: cannot read the garments' default methods ({exc.strerror})") from exc
+        except json.JSONDecodeError as exc:
+            raise DefaultMethodsError(f"{path}: not valid JSON ({exc})") from exc
+        return cls.from_json(data, garment_ids, str(path))
+
+    def get(self, garment_id: str) -> DefaultMethod:
+        """The garment's entry; ``DefaultMethodsError`` if the table has none."""
+        try:
+            return self._entries[garment_id]
+        except KeyError:
+            raise DefaultMethodsError(f"{self.source}: no default method for garment {garment_id!r}") from None
+
+    def __contains__(self, garment_id: object) -> bool:
+        return garment_id in self._entries
+
+    def as_dict(self) -> dict[str, dict[str, str]]:
+        """garment id -> entry, sorted by id (the file's ``garments`` object)."""
+        return {gid: e.as_dict() for gid, e in self._entries.items()}
+
+
+def default_methods(assets_dir: Path | str = ASSETS_DIR) -> DefaultMethods:
+    """The shipped table of an assets folder, ``assets_dir/models/defaults.json``, checked against
+    its garments (read on each call: a service loads it once, at start-up)."""
+    return DefaultMethods.load(Path(assets_dir) / DEFAULTS_FILE, catalog_ids(assets_dir))
+
+
+def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics: str | None = None,
+                    defaults: DefaultMethods | None = None) -> list[Method]:
+    """The method each garment runs: ``fit`` / ``dynamics`` where given (the same for every
+    garment), else the garment's own default from ``defaults`` (default: ``default_methods()``,
+    read only when an option is None).
+
+    returns : one ``Method`` per garment id, in order
+    """
+    if fit is not None and fit not in FIT_MODES:
+        raise InputValueError("/options/fit", f"{fit!r}, expected one of {list(FIT_MODES)} or null")
+    if dynamics is not None and dynamics not in DYNAMICS_MODES:
+        raise InputValueError("/options/dynamics", f"{dynamics!r}, expected one of {list(DYNAMICS_MODES)} or null")
+    if (fit is None or dynamics is None) and defaults is None:
+        defaults = default_methods()
+    return [Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
+            for g in garment_ids]

@@ -1,0 +1,115 @@
+"""inference.defaults: each garment's default method (assets/models/defaults.json), its
+validation, and the pipeline's per-garment resolution (a request's fit / dynamics, else the
+garment's default)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from inference.body import ASSETS_DIR, NEUTRAL_PHENOTYPES, BodyModel
+from inference.defaults import (DEFAULTS_FILE, DefaultMethod, DefaultMethods, DefaultMethodsError, Method, default_methods,
+                                resolve_methods)
+from inference.errors import InputValueError
+from inference.garment import GarmentCatalog, catalog_ids
+from inference.learned import LearnedModels
+from inference.motion.clips import ClipLibrary, adapt_clip
+from inference.pipeline import DrapeOptions, PoseSequence, drape
+
+ENTRY = {"reason": "a test table", "evidence": "tests/test_defaults.py"}
+# trousers keep the learned model, the T-shirt ships the baseline: one drape layers both
+MIXED = DefaultMethods({"trousers": DefaultMethod("learned", "learned", **ENTRY), "tshirt": DefaultMethod("retarget", "none", **ENTRY)})
+
+
+def _shipped() -> dict:
+    return json.loads((ASSETS_DIR / DEFAULTS_FILE).read_text())
+
+
+@pytest.fixture(scope="module")
+def scene():
+    body = BodyModel.load()
+    shape = body.shape(NEUTRAL_PHENOTYPES[None])
+    rot, trans = adapt_clip(ClipLibrary().load("walk"), body, shape)
+    catalog = GarmentCatalog.load()
+    return body, shape, PoseSequence(rot[0, :6], trans[0, :6], 30.0), catalog, LearnedModels()
+
+
+def test_shipped_file_names_every_catalog_garment_with_a_valid_method():
+    table = default_methods()
+    assert set(table.as_dict()) == set(catalog_ids()) == set(GarmentCatalog.load().ids())
+    assert table.as_dict() == _shipped()["garments"]  # the file, entry for entry
+    for gid in catalog_ids():
+        entry = table.get(gid)
+        assert entry.fit in ("learned", "retarget") and entry.dynamics in ("learned", "none") and entry.reason and entry.evidence
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["garments"].update(cape=dict(d["garments"]["tshirt"])), "unknown garment ids \\['cape'\\]"),
+    (lambda d: d["garments"].pop("dress"), "no default method for garments \\['dress'\\]"),
+    (lambda d: d["garments"]["tshirt"].update(fit="none"), "garments.tshirt: fit 'none' is not a default fit"),
+    (lambda d: d["garments"]["tshirt"].update(fit="simulated"), "garments.tshirt: fit 'simulated'"),
+    (lambda d: d["garments"]["jacket"].update(dynamics="retarget"), "garments.jacket: dynamics 'retarget'"),
+    (lambda d: d["garments"]["jacket"].update(reason=""), "garments.jacket: reason must be a non-empty string"),
+    (lambda d: d["garments"]["jacket"].pop("evidence"), "garments.jacket: expected exactly the keys"),
+    (lambda d: d.update(format=2), "format 2, expected 1"),
+])
+def test_a_bad_file_fails_loudly(tmp_path, change, message):
+    data = _shipped()
+    change(data)
+    path = tmp_path / "defaults.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(DefaultMethodsError, match=message) as err:
+        DefaultMethods.load(path, catalog_ids())
+    assert str(path) in str(err.value)
+
+
+def test_a_missing_or_unparseable_file_fails_loudly(tmp_path):
+    with pytest.raises(DefaultMethodsError, match="cannot read"):
+        DefaultMethods.load(tmp_path / "nowhere.json", catalog_ids())
+    (tmp_path / "broken.json").write_text('{"format": 1, "garments": {')
+    with pytest.raises(DefaultMethodsError, match="not valid JSON"):
+        DefaultMethods.load(tmp_path / "broken.json", catalog_ids())
+
+
+def test_resolution_per_garment_and_explicit_overrides():
+    ids = ["trousers", "tshirt"]
+    assert resolve_methods(ids, None, None, MIXED) == [Method("learned", "learned"), Method("retarget", "none")]
+    # an explicit option applies to every garment; the other one still follows each default
+    assert resolve_methods(ids, "learned", None, MIXED) == [Method("learned", "learned"), Method("learned", "none")]
+    assert resolve_methods(ids, None, "none", MIXED) == [Method("learned", "none"), Method("retarget", "none")]
+    assert resolve_methods(ids, "none", "none", MIXED) == [Method("none", "none")] * 2  # fit 'none': explicit, uniform
+    assert resolve_methods(["cape"], "retarget", "none", None) == [Method("retarget", "none")]  # no table needed
+    with pytest.raises(DefaultMethodsError, match="no default method for garment 'cape'"):
+        resolve_methods(["cape"], None, "none", MIXED)
+    with pytest.raises(InputValueError, match="/options/fit"):
+        resolve_methods(ids, "simulated", None, MIXED)
+    with pytest.raises(DefaultMethodsError, match="fit 'none' is not a default fit"):
+        DefaultMethod("none", "none", **ENTRY)
+
+
+def test_pipeline_runs_each_garment_its_default(scene):
+    """A drape layering a learned garment with a retargeted one gives each the vertices of an
+    explicit drape with that garment's method (guard off: the garments are then independent)."""
+    body, shape, motion, catalog, models = scene
+    garments = [catalog.get("trousers"), catalog.get("tshirt")]
+    base = dict(guard=False, lift_arms=False)
+    mixed = drape(body, shape, motion, garments, DrapeOptions(**base), models=models, defaults=MIXED)
+    assert [g.method for g in mixed.garments] == [Method("learned", "learned"), Method("retarget", "none")]
+    for g, draped in zip(garments, mixed.garments):
+        m = MIXED.get(g.id)
+        alone = drape(body, shape, motion, [g], DrapeOptions(fit=m.fit, dynamics=m.dynamics, **base), models=models)
+        np.testing.assert_array_equal(draped.vertices, alone.garments[0].vertices)
+    # an explicit option overrides the default for all: both garments run the learned model
+    explicit = drape(body, shape, motion, garments, DrapeOptions(fit="learned", dynamics="learned", **base), models=models, defaults=MIXED)
+    assert [g.method for g in explicit.garments] == [Method("learned", "learned")] * 2
+    np.testing.assert_array_equal(explicit.garments[0].vertices, mixed.garments[0].vertices)
+    assert np.abs(explicit.garments[1].vertices - mixed.garments[1].vertices).max() > 1e-3  # the T-shirt changed method
+
+
+def test_pipeline_without_a_table_reads_the_shipped_file(scene):
+    body, shape, motion, catalog, models = scene
+    tshirt = catalog.get("tshirt")
+    default = default_methods().get("tshirt")
+    result = drape(body, shape, motion, [tshirt], DrapeOptions(guard=False, lift_arms=False), models=models)
+    assert result.garments[0].method == default.method
