@@ -8,9 +8,9 @@ pytest.importorskip("newton")
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel  # noqa: E402
 from inference.garment import GarmentCatalog  # noqa: E402
 from inference.metrics import inside_mask  # noqa: E402
-from inference.pipeline import DrapeOptions, drape  # noqa: E402
+from inference.pipeline import DrapeOptions, PoseSequence, drape  # noqa: E402
 from training.protocol import SMOKE, case_motion  # noqa: E402
-from training.reference import ReferenceSettings, bending_stiffness_per_edge, lead_in_motion, simulate  # noqa: E402
+from training.reference import ReferenceSettings, bending_stiffness_per_edge, lead_in_motion, simulate_case, waistband_vertices  # noqa: E402
 
 
 def test_bending_stiffness_maps_snug_eq_5_10():
@@ -30,20 +30,56 @@ def test_lead_in_starts_at_rest_and_reaches_the_first_pose():
     np.testing.assert_array_equal(t, np.repeat(trans[:1], 5, 0))
 
 
-@pytest.mark.timeout(600)
-def test_three_frames_of_trousers_on_the_cpu():
+@pytest.fixture(scope="module")
+def smoke_reference(tmp_path_factory):
+    """Three frames of the trousers on the validation walk, simulated once (no lead-in)."""
     body, catalog = BodyModel.load(), GarmentCatalog.load()
-    shape, motion, start = case_motion(body, SMOKE)
+    directory = tmp_path_factory.mktemp("reference")
     settings = ReferenceSettings(lead_in_frames=0, settle_frames=0, device="cpu")
+    path = simulate_case("trousers", SMOKE, settings, directory, body, catalog)
+    return body, catalog, directory, path
+
+
+@pytest.mark.timeout(600)
+def test_three_frames_of_trousers_on_the_cpu(smoke_reference):
+    body, catalog, _, path = smoke_reference
+    shape, motion, start = case_motion(body, SMOKE)
     asset = catalog.get("trousers")
-    rot, trans = motion.rotations[start:], motion.translation[start:]
-    result = simulate(asset, body, NEUTRAL_PHENOTYPES, rot, trans, motion.fps, settings)
-    v = result.vertices
+    with np.load(path, allow_pickle=False) as f:
+        v, body_v = f["vertices"], f["body_vertices"]
     assert v.shape == (SMOKE.frames, asset.num_vertices, 3) and np.isfinite(v).all()
     # the cloth follows the body: within a few cm of the skinned retarget, hardly inside the body
-    base = drape(body, shape, type(motion)(rot, trans, motion.fps), [asset], DrapeOptions(fit="retarget", dynamics="none", lift_arms=False, guard=False))
-    err = np.linalg.norm(v - base.garments[0].vertices, axis=-1).mean()
-    assert err < 0.03
-    assert inside_mask(v, result.body_vertices, body.faces).mean() < 0.01
-    # and it moves: gravity and the body act between the frames
+    window = PoseSequence(motion.rotations[start:], motion.translation[start:], motion.fps)
+    base = drape(body, shape, window, [asset], DrapeOptions(fit="retarget", dynamics="none", lift_arms=False, guard=False))
+    assert np.linalg.norm(v - base.garments[0].vertices, axis=-1).mean() < 0.03
+    assert inside_mask(v, body_v, body.faces).mean() < 0.01
+    # the waistband is kinematic: it follows the skinned fit exactly
+    pins = waistband_vertices(asset)
+    assert len(pins) > 10
+    np.testing.assert_allclose(v[:, pins], base.garments[0].vertices[:, pins], atol=1e-4)
+    # and the rest moves: gravity and the body act between the frames
     assert np.abs(v[-1] - v[0]).max() > 1e-4
+
+
+def test_judge_smoke_slice(smoke_reference, monkeypatch):
+    """The judge's CI slice: every method against the three simulated frames, with finite
+    numbers, and the selection rule picks the baseline when the learned model is farther away."""
+    body, catalog, directory, _ = smoke_reference
+    from training import judge
+
+    row = judge.judge_case(judge.Inputs(body, catalog), SMOKE, "trousers", directory)
+    assert set(row["methods"]) == {"learned", "retarget", "lbs"}
+    for m in row["methods"].values():
+        assert np.isfinite(m["error_cm"]) and 0 <= m["error_cm"] < 10
+        assert m["collisions_after"]["inside_pct_clean"] == 0.0
+        assert all(np.isfinite(x) for x in m["realism"].values())
+    ref_real = row["reference"]["realism"]
+    assert ref_real["folded_pct"] < 5.0 and 0.5 < ref_real["edge_p1"] <= ref_real["edge_p99"] < 2.0
+    fake = {**row, "methods": {k: dict(v) for k, v in row["methods"].items()}}
+    fake["methods"]["learned"]["error_cm"] = fake["methods"]["retarget"]["error_cm"] + 1.0
+    assert judge.select_defaults([fake])["trousers"]["fit"] == "retarget"
+    fake["methods"]["learned"].update(error_cm=0.0, realism_failures=[])
+    fake["methods"]["lbs"]["error_cm"] = fake["methods"]["retarget"]["error_cm"] = 1.0
+    assert judge.select_defaults([fake])["trousers"] == {**judge.select_defaults([fake])["trousers"], "fit": "learned", "dynamics": "learned"}
+    text = judge.markdown({"validation": [row]}, judge.select_defaults([row]), "test")
+    assert "| trousers |" in text and "newton" in text

@@ -29,6 +29,12 @@ particle radius equal to the garment's collision margin (``material.collision_ma
 friction ``friction`` (Coulomb, 0.3 cloth on skin; 0 matches the SNUG losses, which have none).
 No cloth self-contact (SNUG's losses have none either).
 
+Waistbands: a bottom (``category`` 'bottom': trousers) is held up in life by an elastic waistband
+tighter than the hips, which a membrane at its rest size cannot model; left free, the simulated
+trousers slid down to the ankles within a second (seen on the contact sheet of 02_02). Their
+waist opening (the border loop highest in the rest shape, ``waistband_vertices``) is therefore
+kinematic: it follows the skinned retarget fit, as simulators pin a waistband (HOOD, ContourCraft).
+
 Sequence: the ``.mhclo`` retarget of the garment on the shaped body in the rest pose, a lead-in
 from the rest pose to the clip's first pose (``lead_in_frames``, smoothstep per joint), a settle
 period holding the first pose (``settle_frames``: the garment comes to rest under gravity), then
@@ -114,6 +120,27 @@ def bending_stiffness_per_edge(rest: np.ndarray, edge_indices: np.ndarray, k_ben
     return np.where(valid, ke, 0.0).astype(np.float32)
 
 
+def waistband_vertices(asset: GarmentAsset) -> np.ndarray:
+    """Vertices of the waist opening of a bottom garment: the border loop (edges of one face)
+    with the highest mean z in the rest shape. Other categories: none. returns (P,) int64."""
+    if asset.category != "bottom":
+        return np.zeros(0, np.int64)
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    faces = np.asarray(asset.faces, np.int64)
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    border = uniq[count == 1]
+    V = asset.num_vertices
+    g = sp.coo_matrix((np.ones(len(border)), (border[:, 0], border[:, 1])), shape=(V, V))
+    _, label = connected_components(g, directed=False)
+    ids = np.unique(border)
+    loops = {lab: ids[label[ids] == lab] for lab in np.unique(label[ids])}
+    z = np.asarray(asset.rest_vertices)[:, 2]
+    return max(loops.values(), key=lambda v: z[v].mean()).astype(np.int64)
+
+
 def lead_in_motion(rotations: np.ndarray, translation: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
     """Poses from the rest pose to a clip's first pose: each joint's axis-angle s * r_0 with
     s = smoothstep(k / frames), k = 0..frames-1; translation held at t_0.
@@ -140,7 +167,8 @@ class ReferenceResult:
 class ClothOnBody:
     """One garment on one moving body in newton (``simulate`` runs it)."""
 
-    def __init__(self, asset: GarmentAsset, initial: np.ndarray, body_frame0: np.ndarray, body_faces: np.ndarray, settings: ReferenceSettings):
+    def __init__(self, asset: GarmentAsset, initial: np.ndarray, body_frame0: np.ndarray, body_faces: np.ndarray, settings: ReferenceSettings,
+                 pinned: np.ndarray | None = None):
         import newton
         import warp as wp
 
@@ -171,6 +199,13 @@ class ClothOnBody:
         props = model.edge_bending_properties.numpy()
         props[:, 0] = bending_stiffness_per_edge(np.asarray(asset.rest_vertices, np.float64), model.edge_indices.numpy(), float(m["k_bend"]))
         model.edge_bending_properties.assign(props)
+        # kinematic vertices (waistband): zero inverse mass, positions set every substep
+        self.pinned = np.zeros(0, np.int64) if pinned is None else np.asarray(pinned, np.int64)
+        if len(self.pinned):
+            for name in ("particle_inv_mass", "particle_mass"):  # the solver reads both
+                values = getattr(model, name).numpy()
+                values[self.pinned] = 0.0
+                getattr(model, name).assign(values)
         self.model = model
         self.pipeline = newton.CollisionPipeline(model, soft_contact_gap=2.0 * float(m["collision_margin_m"]))
         self.contacts = self.pipeline.contacts()
@@ -193,13 +228,22 @@ class ClothOnBody:
         mesh.velocities.assign(np.asarray(velocities, np.float32))
         mesh.refit()
 
-    def step_frame(self, body_a: np.ndarray, body_b: np.ndarray, frame_dt: float) -> None:
-        """One frame: ``substeps`` VBD steps with the body moving linearly from a to b."""
+    def set_pinned(self, points: np.ndarray, velocities: np.ndarray) -> None:
+        q, qd = self.state0.particle_q.numpy(), self.state0.particle_qd.numpy()
+        q[self.pinned], qd[self.pinned] = points, velocities
+        self.state0.particle_q.assign(q)
+        self.state0.particle_qd.assign(qd)
+
+    def step_frame(self, body_a: np.ndarray, body_b: np.ndarray, frame_dt: float, pin_a: np.ndarray | None = None, pin_b: np.ndarray | None = None) -> None:
+        """One frame: ``substeps`` VBD steps with the body (and the pinned vertices, (P, 3))
+        moving linearly from a to b."""
         n = self.settings.substeps
         dt = frame_dt / n
         velocity = (body_b - body_a) / frame_dt
         for k in range(n):
             s = (k + 1) / n
+            if len(self.pinned):
+                self.set_pinned(pin_a + s * (pin_b - pin_a), (pin_b - pin_a) / frame_dt)
             self.set_body(body_a + s * (body_b - body_a), velocity)
             self.pipeline.collide(self.state0, self.contacts)
             self.state0.clear_forces()
@@ -238,7 +282,10 @@ def simulate(asset: GarmentAsset, body: BodyModel, phenotypes: np.ndarray, rotat
     # frame 0 of the sequence: the rest pose shifted to t_0 (the lead-in's start) or, without a
     # lead-in or settle, the clip's first pose, the fit skinned into it
     initial = linear_blend_skinning(rest_fit, asset.skin_weights, transforms[:, :1])[0, 0]
-    sim = ClothOnBody(asset, initial, body_frames[0], body.faces, settings)
+    pinned = waistband_vertices(asset)
+    # the pinned vertices follow the skinned fit: (L + S + T, P, 3)
+    pin_frames = linear_blend_skinning(rest_fit[:, pinned], asset.skin_weights[pinned], transforms)[0] if len(pinned) else None
+    sim = ClothOnBody(asset, initial, body_frames[0], body.faces, settings, pinned)
     pad_m = 0.5
     sim.widen_collider_bounds(body_frames.min(axis=(0, 1)) - pad_m, body_frames.max(axis=(0, 1)) + pad_m)
     frame_dt = 1.0 / float(fps)
@@ -249,7 +296,10 @@ def simulate(asset: GarmentAsset, body: BodyModel, phenotypes: np.ndarray, rotat
         out[0] = initial
     t0 = time.perf_counter()
     for f in range(1, len(body_frames)):
-        sim.step_frame(body_frames[f - 1], body_frames[f], frame_dt)
+        if pin_frames is None:
+            sim.step_frame(body_frames[f - 1], body_frames[f], frame_dt)
+        else:
+            sim.step_frame(body_frames[f - 1], body_frames[f], frame_dt, pin_frames[f - 1], pin_frames[f])
         if f >= first_clip:
             q = sim.positions
             if not np.isfinite(q).all():
