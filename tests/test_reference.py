@@ -68,7 +68,7 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     from training import judge
 
     row = judge.judge_case(judge.Inputs(body, catalog), SMOKE, "trousers", directory)
-    assert set(row["methods"]) == {"learned", "retarget", "lbs"}
+    assert set(row["methods"]) == {"learned", "learned-fit", "retarget", "lbs"}
     for m in row["methods"].values():
         assert np.isfinite(m["error_cm"]) and 0 <= m["error_cm"] < 10
         assert m["collisions_after"]["inside_pct_clean"] == 0.0
@@ -76,10 +76,16 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     ref_real = row["reference"]["realism"]
     assert ref_real["folded_pct"] < 5.0 and 0.5 < ref_real["edge_p1"] <= ref_real["edge_p99"] < 2.0
     fake = {**row, "methods": {k: dict(v) for k, v in row["methods"].items()}}
-    fake["methods"]["learned"]["error_cm"] = fake["methods"]["retarget"]["error_cm"] + 1.0
+    for name in ("learned", "learned-fit"):
+        fake["methods"][name].update(error_cm=fake["methods"]["retarget"]["error_cm"] + 1.0, realism_failures=[])
     assert judge.select_defaults([fake])["trousers"]["fit"] == "retarget"
-    fake["methods"]["learned"].update(error_cm=0.0, realism_failures=[])
     fake["methods"]["lbs"]["error_cm"] = fake["methods"]["retarget"]["error_cm"] = 1.0
-    assert judge.select_defaults([fake])["trousers"] == {**judge.select_defaults([fake])["trousers"], "fit": "learned", "dynamics": "learned"}
+    fake["methods"]["learned"].update(error_cm=0.5, realism_failures=["folded_pct"])  # closer, but fails realism
+    fake["methods"]["learned-fit"].update(error_cm=0.8)
+    chosen = judge.select_defaults([fake])["trousers"]
+    assert (chosen["fit"], chosen["dynamics"]) == ("learned", "none")
+    fake["methods"]["learned"]["realism_failures"] = []
+    chosen = judge.select_defaults([fake])["trousers"]
+    assert (chosen["fit"], chosen["dynamics"]) == ("learned", "learned")
     text = judge.markdown({"validation": [row]}, judge.select_defaults([row]), "test")
     assert "| trousers |" in text and "newton" in text

@@ -8,6 +8,7 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
 - methods    : ``inference.pipeline.drape`` with explicit options (the motion already has its
                arms lifted, as the service imports it):
                  learned  : retarget + fit regressor R_G + wrinkle GRU R_L (thesis eq. 4.2)
+                 learned-fit : retarget + R_G, no dynamics (where the two models' errors come from)
                  retarget : the .mhclo retarget fit, no dynamics
                  lbs      : the neutral template, plain LBS
                the learned dynamics run from the clip's frame 0; every method is compared on the
@@ -20,11 +21,12 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                strain and bending energy per frame (``training.physics``, SNUG eq. 5.8-5.10),
                diagnostics only; ms per garment-frame of the pipeline on this machine
 
-Selection (validation split only; ``select_defaults``): a garment's default is the learned model
-when it is closer to the reference than both baselines on every validation case and passes the
-realism margins (``REALISM_MARGINS``, against the reference's own values); otherwise the better
-of the two baselines by vertex error, restricted to 'retarget' (the plain LBS of the neutral
-template ignores the body shape, so it is no default).
+Selection (validation split only; ``select_defaults``): a garment's default is the learned
+candidate ('learned', else 'learned-fit') with the lowest mean error when it is closer to the
+reference than both baselines on every validation case and passes the realism margins
+(``REALISM_MARGINS``, against the reference's own values) on all of them; otherwise the
+retarget baseline (the plain LBS of the neutral template ignores the body shape, so it is a
+baseline, never a default).
 
 CLI:
     python -m training.judge --split validation --write-defaults assets/models/defaults.json
@@ -54,6 +56,7 @@ log = logging.getLogger(__name__)
 
 METHODS: dict[str, DrapeOptions] = {
     "learned": DrapeOptions(fit="learned", dynamics="learned", lift_arms=False),
+    "learned-fit": DrapeOptions(fit="learned", dynamics="none", lift_arms=False),
     "retarget": DrapeOptions(fit="retarget", dynamics="none", lift_arms=False),
     "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
 }
@@ -168,26 +171,33 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
     return row
 
 
+LEARNED_CANDIDATES = ("learned", "learned-fit")
+BASELINES = ("retarget", "lbs")
+
+
 def select_defaults(rows: list[dict]) -> dict[str, dict]:
     """Per garment, the default method from validation rows (module docstring)."""
     out = {}
     for garment in sorted({r["garment"] for r in rows}):
         mine = [r for r in rows if r["garment"] == garment]
-        err = {m: float(np.mean([r["methods"][m]["error_cm"] for r in mine])) for m in METHODS}
-        learned_wins = all(r["methods"]["learned"]["error_cm"] < min(r["methods"]["retarget"]["error_cm"], r["methods"]["lbs"]["error_cm"]) for r in mine)
-        learned_real = all(not r["methods"]["learned"]["realism_failures"] for r in mine)
+        names = [m for m in mine[0]["methods"] if all(m in r["methods"] for r in mine)]
+        err = {m: float(np.mean([r["methods"][m]["error_cm"] for r in mine])) for m in names}
         cases = ", ".join(r["case"] for r in mine)
-        if learned_wins and learned_real:
-            out[garment] = {"fit": "learned", "dynamics": "learned",
-                            "reason": f"closest to the newton reference on validation ({cases}): learned {err['learned']:.2f} cm, "
-                                      f"retarget {err['retarget']:.2f} cm, lbs {err['lbs']:.2f} cm; realism within margins"}
+        errors = ", ".join(f"{m} {e:.2f} cm" for m, e in err.items())
+        verdicts = []
+        for cand in sorted((m for m in LEARNED_CANDIDATES if m in err), key=err.get):
+            closer = all(r["methods"][cand]["error_cm"] < min(r["methods"][b]["error_cm"] for b in BASELINES if b in r["methods"]) for r in mine)
+            fails = sorted({f for r in mine for f in r["methods"][cand]["realism_failures"]})
+            if closer and not fails:
+                opts = METHODS[cand]
+                out[garment] = {"fit": opts.fit, "dynamics": opts.dynamics,
+                                "reason": f"{cand}: closest to the newton reference on validation ({cases}; {errors}), realism within margins"}
+                break
+            verdicts.append(f"{cand} " + ("not closer than both baselines" if not closer else "") + (" and " if not closer and fails else "")
+                            + (f"fails the realism margins ({', '.join(fails)})" if fails else ""))
         else:
-            why = [] if learned_wins else [f"learned {err['learned']:.2f} cm from the newton reference against retarget {err['retarget']:.2f} cm and lbs {err['lbs']:.2f} cm"]
-            fails = sorted({f for r in mine for f in r["methods"]["learned"]["realism_failures"]})
-            if fails:
-                why.append(f"learned fails the realism margins ({', '.join(fails)})")
             out[garment] = {"fit": "retarget", "dynamics": "none",
-                            "reason": f"baseline: on validation ({cases}) " + "; ".join(why)}
+                            "reason": f"baseline: on validation ({cases}; {errors}) " + "; ".join(verdicts)}
         out[garment]["evidence"] = "docs/evaluation.md"
     return out
 
