@@ -3,7 +3,7 @@
 R_L's displacements live in the span of K smooth manifold harmonics per coordinate
 (``training.models.OutputBasis``); the corrections that make a drape collision-free (the guard
 and exact repair of the runtime, ``inference.guard``, ``inference.repair``) are local, and only
-~30 % of their squared norm lies in that span (docs/evaluation.md, session 8). Here:
+~30 % of their squared norm lies in that span (docs/archive/evaluation-ch4-ch5.md, session 8). Here:
 
 1. ``correction_modes``: drape the garment with the learned model on clips other than 01_01 and
    several bodies, take the correction d = guarded - raw of every n-th frame, map it to the rest

@@ -44,7 +44,7 @@ WINDOW_FRAMES = 3
 # for validation. AMC files under training/sources/mocap/cmu-asfamc/<subject>/, or a BVH file of
 # BVH_CLIPS under training/sources/mocap/. 131_01 (CMU: "start, walk, stop", Michael Jackson
 # styled) since session 13: with the two subjects' walks, runs and jumps alone the GRUs did not
-# generalise to the dance clip (docs/evaluation.md, "An unseen motion").
+# generalise to the dance clip (docs/archive/evaluation-ch4-ch5.md, "An unseen motion").
 TRAIN_CLIPS = ("01_14", "02_01", "02_03", "02_04", "02_05", "02_09", "131_01")
 VALIDATION_CLIP = "02_02"
 TEST_ONLY_CLIPS = ("01_01", "02_07")  # the judge's test clips (training.protocol): reported only

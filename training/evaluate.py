@@ -1,7 +1,7 @@
 """Evaluation of the learned garment model against the baselines and the physics reference
 (issue 3, Part 7; thesis table 5.1 for the energies, table 6.2 for the vertex error).
 
-Run: ``python -m training.evaluate --clip 01_01 --every 8 --write docs/evaluation.md``
+Run: ``python -m training.evaluate --clip 01_01 --every 8 --write docs/archive/evaluation-ch4-ch5.md``
 
 Methods (``inference.pipeline.drape`` with these options):
     learned  : retarget + R_G + R_L, then LBS (fit='learned', dynamics='learned')
