@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> None:
 
     p = argparse.ArgumentParser(description="newton VBD reference simulation of catalog garments on protocol cases.")
     p.add_argument("--garment", action="append", required=True, help="garment id (repeatable)")
-    p.add_argument("--split", choices=sorted(SPLITS) + ["smoke"], help="every case of a protocol split")
+    p.add_argument("--split", action="append", choices=sorted(SPLITS) + ["smoke"], help="every case of a protocol split (repeatable)")
     p.add_argument("--clip", help="one case: clip id (bundled or CMU AMC under training/sources)")
     p.add_argument("--body", default="neutral", help="one case: body name of training.protocol.BODIES")
     p.add_argument("--start", type=int, default=0)
@@ -381,10 +381,8 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     settings = ReferenceSettings(substeps=args.substeps, iterations=args.iterations, friction=args.friction,
                                  lead_in_frames=args.lead_in, settle_frames=args.settle, device=args.device)
-    if args.split == "smoke":
-        cases = [SMOKE]
-    elif args.split:
-        cases = list(SPLITS[args.split])
+    if args.split:
+        cases = [c for split in args.split for c in ([SMOKE] if split == "smoke" else SPLITS[split])]
     elif args.clip:
         cases = [Case(args.clip, args.body, args.start, args.frames)]
     else:
