@@ -26,7 +26,7 @@ from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
 from inference.garment import GarmentAsset, GarmentCatalog
 from inference.motion.bvh import parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
-from inference.motion.resample import resample_motion
+from inference.motion.resample import resample_motion, resampled_frame_count
 from inference.motion.retarget import retarget
 from inference.motion.self_contact import lift_arms
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape
@@ -161,6 +161,8 @@ class Runtime:
             stop = clip.num_frames
             if m.duration_s is not None:
                 stop = min(stop, start + int(round(m.duration_s * clip.fps)) + 1)
+            if m.duration_s is not None:
+                self._check_frames(resampled_frame_count(stop - start, clip.fps, fps), fps, s)
             rotations, translation = self._adapted_clip(m.clip, tuple(shape.phenotypes[0].tolist()), clip, shape)
             rotations, translation = rotations[0, start:stop], translation[0, start:stop]
             rotations, translation = resample_motion(rotations, translation, clip.fps, fps)
@@ -171,6 +173,7 @@ class Runtime:
                 raise InputValueError("/body/motion/translation", f"{len(m.translation)} frames, rotations have {len(m.rotations)}")
             if len(m.rotations) > s.max_source_frames:
                 raise InputValueError("/body/motion/rotations", f"at most {s.max_source_frames} frames")
+            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, fps), fps, s, "/body/motion/fps")
             rotations = np.asarray(m.rotations, np.float32)
             translation = np.asarray(m.translation, np.float32)
             if np.abs(rotations).max() > 1e3 or np.abs(translation).max() > 1e4:
@@ -181,11 +184,18 @@ class Runtime:
             if len(m.bvh.encode()) > s.max_bvh_bytes:
                 raise InputValueError("/body/motion/bvh", f"BVH text exceeds {s.max_bvh_bytes} bytes")
             source = parse_bvh(m.bvh, unit_scale=BVH_UNITS[m.units], max_frames=s.max_source_frames)
+            self._check_frames(resampled_frame_count(source.num_frames, source.fps, fps), fps, s, "/body/motion/bvh")
             result = retarget(source, self.body, shape, fps=fps)
             rotations, translation = result.rotations, result.translation
-        if len(rotations) > s.max_frames:
-            raise InputValueError("/body/motion", f"{len(rotations)} frames at {fps:g} fps exceed the limit of {s.max_frames}; shorten the motion, lower options.fps or use POST /v1/jobs")
+        self._check_frames(len(rotations), fps, s)
         return PoseSequence(np.ascontiguousarray(rotations, np.float32), np.ascontiguousarray(translation, np.float32), fps)
+
+    @staticmethod
+    def _check_frames(frames: int, fps: float, limits: "RequestLimits", field: str = "/body/motion") -> None:
+        """Refuse a motion whose output frame count (counted before any resampling or
+        retargeting) exceeds the limit."""
+        if frames > limits.max_frames:
+            raise InputValueError(field, f"{frames} frames at {fps:g} fps exceed the limit of {limits.max_frames}; shorten the motion, lower options.fps or use POST /v1/jobs")
 
     def check_request(self, request: DrapeRequest, limits: RequestLimits | None = None) -> list[GarmentAsset]:
         """The request's garments in layer order (raises a 422 input error for unknown garment or clip ids,
@@ -204,6 +214,9 @@ class Runtime:
         # Layer order: the catalog's default layer, then the request's order (stable).
         if isinstance(request.motion, ClipMotion) and request.motion.clip not in self.clips.ids():
             raise InputValueError("/body/motion/clip", f"unknown clip {request.motion.clip!r}; see GET /v1/motions")
+        if isinstance(request.motion, PoseMotion):  # the output frame count, from the input alone
+            m = request.motion
+            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, request.options.fps), request.options.fps, limits, "/body/motion/fps")
         return [a for _, _, a in sorted((a.layer, i, a) for i, a in enumerate(assets))] if len(assets) > 1 else assets
 
     def prepare(self, request: DrapeRequest, limits: RequestLimits | None = None) -> PreparedDrape:

@@ -10,6 +10,16 @@ from inference import rotations as rot
 DEFAULT_FPS = 30.0
 
 
+def resampled_frame_count(num_frames: int, fps_in: float, fps_out: float) -> int:
+    """Frames a clip of ``num_frames`` at ``fps_in`` has at ``fps_out`` (``resample_times``):
+    floor((num_frames - 1) / fps_in * fps_out + 1e-6) + 1, computed before any array is made, so
+    that a caller can refuse an oversized request first (saturates at 2**62 for absurd rates)."""
+    if not (fps_in > 0 and fps_out > 0 and math.isfinite(fps_in) and math.isfinite(fps_out)):
+        raise ValueError(f"frame rates must be positive, got {fps_in} -> {fps_out}")
+    n = (max(int(num_frames), 1) - 1) / fps_in * fps_out + 1e-6
+    return int(math.floor(n)) + 1 if math.isfinite(n) and n < 2.0**62 else 2**62
+
+
 def resample_times(num_frames: int, fps_in: float, fps_out: float) -> np.ndarray:
     """Output sample times (seconds) covering the input clip's duration.
 
@@ -20,9 +30,7 @@ def resample_times(num_frames: int, fps_in: float, fps_out: float) -> np.ndarray
     """
     if not (fps_in > 0 and fps_out > 0 and math.isfinite(fps_in) and math.isfinite(fps_out)):
         raise ValueError(f"frame rates must be positive, got {fps_in} -> {fps_out}")
-    duration_s = (num_frames - 1) / fps_in
-    n = int(math.floor(duration_s * fps_out + 1e-6)) + 1
-    return np.arange(n) / fps_out
+    return np.arange(resampled_frame_count(num_frames, fps_in, fps_out)) / fps_out
 
 
 def resample_rotations(rotvecs: np.ndarray, times_in_frames: np.ndarray) -> np.ndarray:

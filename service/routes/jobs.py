@@ -7,6 +7,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from service.errors import ProblemException
 from service.jobs import MEDIA_TYPES, JobRecord
 from service.schemas import DRAPE_EXAMPLE, DrapeRequest, JobProgress, JobResponse
+from service.runtime import RequestLimits
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 JOB_ID_PATTERN = r"^[0-9a-f]{32}$"
@@ -58,7 +59,7 @@ async def post_job(
     """The body of POST /v1/drape, with the job limits (frames, vertices, request size); the
     result is kept for the configured time."""
     store = _store(request)
-    request.app.state.runtime.check_request(drape_request)
+    request.app.state.runtime.check_request(drape_request, RequestLimits.job(request.app.state.runtime.settings))
     try:
         record = store.create(drape_request)
     except Exception as exc:  # noqa: BLE001 - the queue (Redis, disk) is unavailable: nothing was accepted
