@@ -73,6 +73,7 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
         assert np.isfinite(m["error_cm"]) and 0 <= m["error_cm"] < 10
         assert m["collisions_after"]["inside_pct_clean"] == 0.0
         assert all(np.isfinite(x) for x in m["realism"].values())
+    assert row["reference"]["dressed"] and row["reference"]["slid_pct"] < 1.0
     ref_real = row["reference"]["realism"]
     assert ref_real["folded_pct"] < 5.0 and 0.5 < ref_real["edge_p1"] <= ref_real["edge_p99"] < 2.0
     fake = {**row, "methods": {k: dict(v) for k, v in row["methods"].items()}}
