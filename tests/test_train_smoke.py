@@ -129,7 +129,8 @@ def test_checkpoint_pack_round_trip_and_warm_start(tmp_path):
 def test_pose_workers_give_the_sequential_batches(tmp_path):
     """Posing the next batches in worker processes (``--pose-workers``) trains on the same
     batches, in the same order, as posing them in turn: the same losses (to float32 rounding:
-    the workers' BLAS may sum in another order)."""
+    the workers' BLAS may sum in another order, and the contact terms amplify it: CI measured
+    1.03e-4 relative on one step, so the bound is 1e-3; another seed's batches differ by 10 % to 4x)."""
     from training.train_fit import SMOKE as FIT_SMOKE, FitConfig, train_fit
     from training.train_wrinkle import SMOKE as WRINKLE_SMOKE, WrinkleConfig, train_wrinkle
 
@@ -137,7 +138,7 @@ def test_pose_workers_give_the_sequential_batches(tmp_path):
     runs = [train_wrinkle(WrinkleConfig(garment=GARMENT, **{**WRINKLE_SMOKE, "pose_workers": n}), smoke=True, out_dir=tmp_path) for n in (0, 2)]
     losses = [[h["loss_j"] for h in r["history"]] for r in runs]
     assert len(losses[0]) == WRINKLE_SMOKE["max_steps"]
-    assert losses[1] == pytest.approx(losses[0], rel=1e-4)
+    assert losses[1] == pytest.approx(losses[0], rel=1e-3)
 
 
 def test_inside_workers_give_the_in_process_inside_test(tmp_path):
@@ -151,7 +152,7 @@ def test_inside_workers_give_the_in_process_inside_test(tmp_path):
     runs = [train_wrinkle(WrinkleConfig(garment=GARMENT, exact_inside=True, **{**WRINKLE_SMOKE, "inside_workers": n}), smoke=True, out_dir=tmp_path)
             for n in (0, 2)]
     losses = [[h["loss_j"] for h in r["history"]] for r in runs]
-    assert losses[1] == pytest.approx(losses[0], rel=1e-4)
+    assert losses[1] == pytest.approx(losses[0], rel=1e-3)
 
 
 def test_inside_of_batch_splits_by_windows():
