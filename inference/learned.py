@@ -139,6 +139,14 @@ class LearnedModels:
         """Whether ``garment_id`` ships learned models (without loading them)."""
         return (self.models_dir / garment_id / "model.json").exists()
 
+    def load_all(self, garment_ids) -> list[str]:
+        """Load every listed garment that ships learned models now (a service's start-up, so that
+        no request pays for it and a broken model stops the start); the ids loaded."""
+        loaded = [g for g in garment_ids if self.available(g)]
+        for g in loaded:
+            self.get(g)
+        return loaded
+
     def get(self, garment_id: str, field: str = "garment") -> LearnedGarment:
         """The garment's models; ``MissingModelError`` (naming ``field``) if it has none."""
         with self._lock:

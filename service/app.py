@@ -16,6 +16,7 @@ from service.auth import ApiKeyAuth
 from service.cache import ResultCache
 from service.config import Settings
 from service.errors import install_problem_handlers
+from service.http_rules import HeadAsGet, JsonOnly
 from service.limits import install_body_size_limit
 from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
@@ -66,7 +67,8 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     async def lifespan(app: FastAPI):
         state = app.state
         if state.runtime is None:
-            state.runtime = await asyncio.to_thread(Runtime.load, settings)
+            # the API process drapes only with thread workers; process workers load the models themselves
+            state.runtime = await asyncio.to_thread(Runtime.load, settings, settings.worker_mode == "thread")
         state.pool = WorkerPool(settings, state.runtime, state.metrics)
         await state.pool.start()
         if settings.jobs_backend == "sqlite":
@@ -99,8 +101,9 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     app.state.job_store = None
     app.state.job_runner = None
     install_problem_handlers(app)
-    # Middleware, innermost first: body size -> auth -> CORS -> request context (outermost).
+    # Middleware, innermost first: body size -> JSON only -> auth -> CORS -> HEAD as GET -> request context (outermost).
     install_body_size_limit(app, settings.max_request_bytes, {"/v1/jobs": settings.job_max_request_bytes})
+    app.add_middleware(JsonOnly, paths=frozenset({"/v1/drape", "/v1/jobs"}))
     keys = settings.api_key_set()
     if keys:
         app.add_middleware(ApiKeyAuth, keys=keys, header=settings.api_key_header)
@@ -109,6 +112,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["GET", "POST", "DELETE", "OPTIONS"],
                            allow_headers=["content-type", settings.api_key_header, "x-request-id", "if-none-match"],
                            expose_headers=["etag", "location", "retry-after", "x-request-id", "x-frames", "x-cache", "server-timing"], max_age=600)
+    app.add_middleware(HeadAsGet)
     app.add_middleware(RequestContext, metrics=app.state.metrics)
     for module in (garments, body_model, motions, drape, jobs, health, metrics):
         app.include_router(module.router, responses=COMMON_ERRORS)
@@ -158,6 +162,14 @@ COMMON_ERRORS = {
 }
 
 
+def _deployment_limits(schemas: dict, settings: Settings) -> None:
+    """The request schema's array and string bounds set to this deployment's limits, so that the
+    contract refuses what the server refuses (the pydantic bounds are the hard caps)."""
+    schemas["DrapeRequest"]["properties"]["garments"]["maxItems"] = settings.max_garments
+    poses = schemas["PoseMotion"]["properties"]
+    poses["rotations"]["maxItems"] = poses["translation"]["maxItems"] = settings.max_source_frames
+
+
 def problem_openapi(app: FastAPI) -> dict:
     """The app's OpenAPI document, with every 4xx/5xx answer documented as problem+json, and the
     optional API-key scheme (401/403) on the /v1 routes."""
@@ -173,6 +185,7 @@ def problem_openapi(app: FastAPI) -> dict:
             schemas.pop(name, None)
         components["securitySchemes"] = {"ApiKey": {"type": "apiKey", "in": "header", "name": settings.api_key_header,
                                                     "description": "only when the deployment configures API keys"}}
+        _deployment_limits(schemas, settings)
         for path, item in schema["paths"].items():
             for operation in item.values():
                 responses = operation.get("responses", {})

@@ -1,7 +1,9 @@
 """Content-addressed result cache: identical requests (same body, motion, garments, options and
 format) on the same model versions and garment default methods get the same output, from memory.
 
-The key is the SHA-256 of the canonical JSON of the validated request plus MODEL_VERSIONS, the
+The key is the SHA-256 of the canonical JSON of the validated request plus MODEL_VERSIONS (the
+code's algorithm versions), the content version of the asset files a drape reads (``assets``:
+``inference.asset_digest.AssetDigest.combined``, so a retrained model changes every key), the
 garments' default methods (what a request's null fit / dynamics runs: a changed defaults file
 changes the result) and the API version; it doubles as the response's ETag. The ETag is weak
 (``W/"..."``): a result computed inside a merged batch may differ from the solo one at a few
@@ -22,10 +24,10 @@ from service.runtime import MODEL_VERSIONS, DrapeOutput
 from service.schemas import DrapeRequest
 
 
-def request_key(request: DrapeRequest, api_version: str, defaults: DefaultMethods) -> str:
+def request_key(request: DrapeRequest, api_version: str, defaults: DefaultMethods, assets: str) -> str:
     methods = {gid: [e["fit"], e["dynamics"]] for gid, e in defaults.as_dict().items()}  # not the reasons: they change no output
     canonical = json.dumps(
-        {"request": request.model_dump(mode="json"), "models": MODEL_VERSIONS, "defaults": methods, "api": api_version},
+        {"request": request.model_dump(mode="json"), "models": MODEL_VERSIONS, "assets": assets, "defaults": methods, "api": api_version},
         sort_keys=True, separators=(",", ":"),
     )
     return hashlib.sha256(canonical.encode()).hexdigest()
@@ -36,11 +38,18 @@ def etag_of(key: str) -> str:
 
 
 def etag_matches(if_none_match: str | None, key: str) -> bool:
-    """RFC 9110 weak comparison of If-None-Match against this key's ETag ('*' matches)."""
+    """RFC 9110 weak comparison of If-None-Match against this key's ETag ('*' is not a match
+    here: see ``wildcard``)."""
     if not if_none_match:
         return False
     tags = [t.strip() for t in if_none_match.split(",")]
-    return "*" in tags or any(t.removeprefix("W/") == f'"{key}"' for t in tags)
+    return any(t.removeprefix("W/") == f'"{key}"' for t in tags)
+
+
+def wildcard(if_none_match: str | None) -> bool:
+    """``If-None-Match: *``: "only if no representation exists". A drape always has one, so on
+    POST the condition is false and the answer is 412 (RFC 9110 §13.1.2)."""
+    return bool(if_none_match) and "*" in [t.strip() for t in if_none_match.split(",")]
 
 
 class ResultCache:

@@ -26,10 +26,10 @@ class Settings(BaseSettings):
     # Request limits (POST /v1/drape)
     max_request_bytes: int = Field(8 * 1024 * 1024, ge=1024, description="largest accepted request body")
     max_frames: int = Field(300, ge=1, description="frames per drape after resampling")
-    max_garments: int = Field(4, ge=1, description="garments per request")
+    max_garments: int = Field(4, ge=1, le=8, description="garments per request (at most the schema's cap, 8)")
     max_total_vertices: int = Field(12_000_000, ge=1, description="frames x (garment vertices + body vertices if included)")
     max_bvh_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="largest BVH text")
-    max_source_frames: int = Field(20_000, ge=1, description="frames in an uploaded motion before resampling")
+    max_source_frames: int = Field(20_000, ge=1, le=20_000, description="frames in an uploaded motion before resampling (at most the schema's cap)")
     request_timeout_s: float = Field(60.0, gt=0, description="deadline of a synchronous drape, queueing included (504 after)")
 
     # Worker pool (service/pool.py): inference runs in `workers` processes (or threads), fed by a

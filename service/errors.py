@@ -1,7 +1,10 @@
 """RFC 9457 problem details (``application/problem+json``), in one place.
 
 Every error the service returns goes through here: validation errors name the request field
-(a JSON pointer in ``errors[].pointer``), and no stack trace ever reaches a client.
+(an RFC 6901 JSON pointer into the request document in ``errors[].pointer``, ``""`` for the
+whole document; a path, query or header parameter by name in ``errors[].parameter``), and no
+stack trace ever reaches a client. Unparseable JSON is 400 (RFC 9110), a body that is not JSON
+415; everything that parses but is invalid is 422.
 """
 from __future__ import annotations
 
@@ -52,10 +55,10 @@ def problem_from_exception(exc: BaseException) -> ProblemDetail:
     if isinstance(exc, ProblemException):
         return ProblemDetail(exc.status, exc.title, exc.detail, exc.errors, exc.headers)
     if isinstance(exc, UnknownAssetError):
-        pointer = {"motion.clip": "/body/motion/clip"}.get(exc.field, exc.field)
+        pointer = {"motion.clip": "/motion/clip"}.get(exc.field, exc.field)
         return ProblemDetail(422, "Unknown asset", str(exc), [{"pointer": pointer, "detail": exc.detail}])
     if isinstance(exc, MotionFormatError):
-        return ProblemDetail(422, "Malformed motion", str(exc)[:1000], [{"pointer": "/body/motion", "detail": str(exc)[:1000]}])
+        return ProblemDetail(422, "Malformed motion", str(exc)[:1000], [{"pointer": "/motion", "detail": str(exc)[:1000]}])
     if isinstance(exc, InferenceInputError):
         return ProblemDetail(422, "Invalid input", str(exc), [{"pointer": exc.field, "detail": exc.detail}])
     return ProblemDetail(500, "Internal error", "the server failed to process the request")
@@ -70,9 +73,27 @@ def problem_response(status: int, title: str, detail: str, instance: str = "", e
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
-def _pointer(loc: tuple | list) -> str:
-    """A pydantic error location as a JSON pointer into the request (``/body/garments/0/id``)."""
-    return "/" + "/".join(str(p) for p in loc)
+MOTION_TAGS = ("clip", "poses", "bvh")  # the values of the motion discriminator, ``type`` (service/schemas.py)
+
+
+def _escape(token) -> str:
+    return str(token).replace("~", "~0").replace("/", "~1")
+
+
+def field_of(loc: tuple | list) -> dict[str, str]:
+    """Where a FastAPI validation error lies: ``{"pointer": ...}``, an RFC 6901 pointer into the
+    request body (loc ``("body", "garments", 0, "id")`` -> ``/garments/0/id``; pydantic's
+    union-member tag after ``motion``, ``clip`` in ``("body", "motion", "clip", "start_s")``, is not
+    part of the document and is dropped), or ``{"parameter": name, "in": "path" | "query" | "header"}``."""
+    loc = list(loc)
+    if loc and loc[0] == "body":
+        path = loc[1:]
+        if len(path) >= 2 and path[0] == "motion" and path[1] in MOTION_TAGS:
+            del path[1]
+        return {"pointer": "".join("/" + _escape(p) for p in path)}
+    if loc and loc[0] in ("path", "query", "header", "cookie"):
+        return {"parameter": ".".join(str(p) for p in loc[1:]), "in": loc[0]}
+    return {"pointer": "".join("/" + _escape(p) for p in loc)}
 
 
 def _jsonable(value: Any) -> Any:
@@ -84,12 +105,18 @@ def _jsonable(value: Any) -> Any:
 def install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
+        raw = exc.errors()
+        if any(e.get("type") == "json_invalid" for e in raw):
+            where = next(e for e in raw if e.get("type") == "json_invalid")
+            position = where.get("loc", ("body", "?"))[-1]
+            detail = f"the body is not valid JSON ({where.get('ctx', {}).get('error', 'parse error')} at character {position})"
+            return problem_response(400, "Malformed JSON", detail[:500], request.url.path)
         errors = [
-            {"pointer": _pointer(e.get("loc", ())), "detail": str(e.get("msg", ""))[:500], "type": _jsonable(e.get("type"))}
-            for e in exc.errors()[:50]
+            {**field_of(e.get("loc", ())), "detail": str(e.get("msg", ""))[:500], "type": _jsonable(e.get("type"))}
+            for e in raw[:50]
         ]
-        first = errors[0]["pointer"] if errors else "request"
-        return problem_response(422, "Invalid request", f"{len(exc.errors())} invalid field(s), first: {first}", request.url.path, errors)
+        first = (errors[0].get("pointer", errors[0].get("parameter")) or "(the whole request)") if errors else "request"
+        return problem_response(422, "Invalid request", f"{len(raw)} invalid field(s), first: {first}", request.url.path, errors)
 
     @app.exception_handler(InferenceInputError)
     async def _inference_input(request: Request, exc: InferenceInputError):
@@ -102,7 +129,8 @@ def install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
-        title = {400: "Bad request", 404: "Not found", 405: "Method not allowed", 413: "Request too large"}.get(exc.status_code, "HTTP error")
+        title = {400: "Bad request", 404: "Not found", 405: "Method not allowed", 412: "Precondition failed", 413: "Request too large",
+                 415: "Unsupported media type"}.get(exc.status_code, "HTTP error")
         headers = dict(getattr(exc, "headers", None) or {})
         if exc.status_code == 405:  # every method of every route on this path (Starlette names only the first route's)
             headers["Allow"] = ", ".join(_allowed_methods(request))

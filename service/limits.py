@@ -9,7 +9,12 @@ from service.errors import PROBLEM_JSON
 
 
 class BodySizeLimit:
-    """Answers 413 problem+json when a request body exceeds ``max_bytes`` (declared or streamed)."""
+    """Answers 413 problem+json when a request body exceeds ``max_bytes``, declared
+    (Content-Length) or streamed (chunked transfer).
+
+    The body is read here, up to the limit, and handed to the app in one message: a streamed
+    body that grows past the limit is refused before the app sees any of it (raising inside the
+    app's receive would reach FastAPI's body parser, which answers 400)."""
 
     def __init__(self, app, max_bytes: int, path_limits: dict[str, int] | None = None):
         self.app = app
@@ -17,29 +22,34 @@ class BodySizeLimit:
         self.path_limits = path_limits or {}
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http":
+        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS", "DELETE"):
             return await self.app(scope, receive, send)
         max_bytes = self.path_limits.get(scope.get("path", ""), self.default_bytes)
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > max_bytes):
             return await self._reject(scope, send, max_bytes)
-        received = 0
-        too_large = False
-
-        async def limited_receive():
-            nonlocal received, too_large
+        chunks, received = [], 0
+        while True:
             message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > max_bytes:
-                    too_large = True
-                    raise _TooLarge()
-            return message
+            if message["type"] != "http.request":  # the client went away
+                return
+            chunk = message.get("body", b"")
+            received += len(chunk)
+            if received > max_bytes:
+                return await self._reject(scope, send, max_bytes)
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        replayed = False
 
-        try:
-            await self.app(scope, limited_receive, send)
-        except _TooLarge:
-            await self._reject(scope, send, max_bytes)
+        async def replay():
+            nonlocal replayed
+            if not replayed:
+                replayed = True
+                return {"type": "http.request", "body": b"".join(chunks), "more_body": False}
+            return await receive()  # after the body: http.disconnect
+
+        await self.app(scope, replay, send)
 
     async def _reject(self, scope, send, max_bytes: int):
         body = json.dumps(
@@ -47,12 +57,9 @@ class BodySizeLimit:
              "detail": f"request body exceeds {max_bytes} bytes", "instance": scope.get("path", "")}
         ).encode()
         await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(body)).encode())]})
+                    "headers": [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(body)).encode()),
+                                (b"connection", b"close")]})
         await send({"type": "http.response.body", "body": body})
-
-
-class _TooLarge(Exception):
-    pass
 
 
 def install_body_size_limit(app: FastAPI, max_bytes: int, path_limits: dict[str, int] | None = None) -> None:

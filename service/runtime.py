@@ -19,11 +19,13 @@ from typing import Callable
 
 import numpy as np
 
+from inference.asset_digest import AssetDigest
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
 from inference.defaults import DEFAULTS_FILE, DefaultMethods, Method, resolve_methods
 from inference.errors import InputValueError
 from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
 from inference.garment import GarmentAsset, GarmentCatalog
+from inference.learned import LearnedModels
 from inference.motion.bvh import parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion, resampled_frame_count
@@ -40,6 +42,8 @@ log = logging.getLogger(__name__)
 # metres per BVH unit for the request's `units` (None: infer from the skeleton's size)
 BVH_UNITS = {"auto": None, "metres": 1.0, "centimetres": 0.01, "inches": 0.0254, "cmu": 0.0254 / 0.45}
 CLIP_CACHE_ENTRIES = 64  # adapted clips kept per worker (a 10 s clip is ~0.1 MB)
+# The code's algorithm versions (bumped when a stage's maths changes). The asset files' versions
+# (trained models, body, garments, clips) come from their content: ``Runtime.assets``.
 MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
@@ -106,26 +110,35 @@ class PreparedDrape:
 
 
 class Runtime:
-    def __init__(self, settings: Settings, body: BodyModel, catalog: GarmentCatalog, clips: ClipLibrary, defaults: DefaultMethods):
+    def __init__(self, settings: Settings, body: BodyModel, catalog: GarmentCatalog, clips: ClipLibrary, defaults: DefaultMethods,
+                 models: LearnedModels | None = None, assets: AssetDigest | None = None):
         self.settings = settings
         self.body = body
         self.catalog = catalog
         self.clips = clips
         self.defaults = defaults  # each garment's default method (assets/models/defaults.json)
+        self.models = models or LearnedModels(settings.assets_dir / "models")
+        self.assets = assets or AssetDigest.of(settings.assets_dir)  # content versions: cache keys, ETags, metadata
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
         self._clip_cache: OrderedDict = OrderedDict()
         self._clip_lock = threading.Lock()
 
     @classmethod
-    def load(cls, settings: Settings) -> "Runtime":
+    def load(cls, settings: Settings, learned: bool = True) -> "Runtime":
+        """Every asset, and (``learned``) every learned model's ONNX session: a process that drapes
+        loads them all at start-up; the API process of a process pool, which never drapes,
+        passes False."""
         t0 = time.perf_counter()
         catalog = GarmentCatalog.load(settings.assets_dir)
         # a bad defaults file (unknown garment or mode, a garment without one) stops the start-up here
         defaults = DefaultMethods.load(settings.assets_dir / DEFAULTS_FILE, catalog.ids())
         body = BodyModel.load(settings.assets_dir / "body")
         clips = ClipLibrary(settings.assets_dir)
-        runtime = cls(settings, body, catalog, clips, defaults)
-        log.info("loaded assets in %.2f s", time.perf_counter() - t0)
+        models = LearnedModels(settings.assets_dir / "models")
+        loaded = models.load_all(catalog.ids()) if learned else []  # no request waits for a session; a broken file stops the start
+        runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir))
+        log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",
+                 runtime.assets.combined[:16])
         return runtime
 
     def _adapted_clip(self, clip_id: str, key: tuple, clip, shape: BodyShape) -> tuple[np.ndarray, np.ndarray]:
@@ -157,7 +170,7 @@ class Runtime:
             clip = self.clips.load(m.clip)
             start = int(round(m.start_s * clip.fps))
             if start >= clip.num_frames:
-                raise InputValueError("/body/motion/start_s", f"the clip lasts {clip.duration_s:.2f} s")
+                raise InputValueError("/motion/start_s", f"the clip lasts {clip.duration_s:.2f} s")
             stop = clip.num_frames
             if m.duration_s is not None:
                 stop = min(stop, start + int(round(m.duration_s * clip.fps)) + 1)
@@ -170,28 +183,28 @@ class Runtime:
                 rotations, translation = rotations[: s.max_frames], translation[: s.max_frames]
         elif isinstance(m, PoseMotion):
             if len(m.rotations) != len(m.translation):
-                raise InputValueError("/body/motion/translation", f"{len(m.translation)} frames, rotations have {len(m.rotations)}")
+                raise InputValueError("/motion/translation", f"{len(m.translation)} frames, rotations have {len(m.rotations)}")
             if len(m.rotations) > s.max_source_frames:
-                raise InputValueError("/body/motion/rotations", f"at most {s.max_source_frames} frames")
-            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, fps), fps, s, "/body/motion/fps")
+                raise InputValueError("/motion/rotations", f"at most {s.max_source_frames} frames")
+            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, fps), fps, s, "/motion/fps")
             rotations = np.asarray(m.rotations, np.float32)
             translation = np.asarray(m.translation, np.float32)
             if np.abs(rotations).max() > 1e3 or np.abs(translation).max() > 1e4:
-                raise InputValueError("/body/motion", "rotations must be within 1000 rad and translations within 10 km")
+                raise InputValueError("/motion", "rotations must be within 1000 rad and translations within 10 km")
             rotations, translation = resample_motion(rotations, translation, m.fps, fps)
         else:
             assert isinstance(m, BvhMotion)
             if len(m.bvh.encode()) > s.max_bvh_bytes:
-                raise InputValueError("/body/motion/bvh", f"BVH text exceeds {s.max_bvh_bytes} bytes")
+                raise InputValueError("/motion/bvh", f"BVH text exceeds {s.max_bvh_bytes} bytes")
             source = parse_bvh(m.bvh, unit_scale=BVH_UNITS[m.units], max_frames=s.max_source_frames)
-            self._check_frames(resampled_frame_count(source.num_frames, source.fps, fps), fps, s, "/body/motion/bvh")
+            self._check_frames(resampled_frame_count(source.num_frames, source.fps, fps), fps, s, "/motion/bvh")
             result = retarget(source, self.body, shape, fps=fps)
             rotations, translation = result.rotations, result.translation
         self._check_frames(len(rotations), fps, s)
         return PoseSequence(np.ascontiguousarray(rotations, np.float32), np.ascontiguousarray(translation, np.float32), fps)
 
     @staticmethod
-    def _check_frames(frames: int, fps: float, limits: "RequestLimits", field: str = "/body/motion") -> None:
+    def _check_frames(frames: int, fps: float, limits: "RequestLimits", field: str = "/motion") -> None:
         """Refuse a motion whose output frame count (counted before any resampling or
         retargeting) exceeds the limit."""
         if frames > limits.max_frames:
@@ -203,20 +216,20 @@ class Runtime:
         limits = limits or RequestLimits.drape(self.settings)
         ids = [g.id for g in request.garments]
         if len(ids) > limits.max_garments:
-            raise InputValueError("/body/garments", f"at most {limits.max_garments} garments per request")
+            raise InputValueError("/garments", f"at most {limits.max_garments} garments per request")
         if len(set(ids)) != len(ids):
-            raise InputValueError("/body/garments", "a garment is listed twice")
+            raise InputValueError("/garments", "a garment is listed twice")
         assets = []
         for i, gid in enumerate(ids):
             if gid not in self.catalog.ids():
-                raise InputValueError(f"/body/garments/{i}/id", f"unknown garment {gid!r}; see GET /v1/garments")
+                raise InputValueError(f"/garments/{i}/id", f"unknown garment {gid!r}; see GET /v1/garments")
             assets.append(self.catalog.get(gid))
         # Layer order: the catalog's default layer, then the request's order (stable).
         if isinstance(request.motion, ClipMotion) and request.motion.clip not in self.clips.ids():
-            raise InputValueError("/body/motion/clip", f"unknown clip {request.motion.clip!r}; see GET /v1/motions")
+            raise InputValueError("/motion/clip", f"unknown clip {request.motion.clip!r}; see GET /v1/motions")
         if isinstance(request.motion, PoseMotion):  # the output frame count, from the input alone
             m = request.motion
-            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, request.options.fps), request.options.fps, limits, "/body/motion/fps")
+            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, request.options.fps), request.options.fps, limits, "/motion/fps")
         return [a for _, _, a in sorted((a.layer, i, a) for i, a in enumerate(assets))] if len(assets) > 1 else assets
 
     def prepare(self, request: DrapeRequest, limits: RequestLimits | None = None) -> PreparedDrape:
@@ -230,7 +243,7 @@ class Runtime:
         per_frame = sum(a.num_vertices for a in assets) + (self.body.num_vertices if o.include_body else 0)
         if motion.num_frames * per_frame > limits.max_total_vertices:
             raise InputValueError(
-                "/body", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
+                "", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
             )
         options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body,
                                lift_arms=o.lift_arms, guard_check=o.guard_check, guard_exact=o.guard_exact)
@@ -250,7 +263,7 @@ class Runtime:
             first = prepared[members[0]]
             motion = merge_motions([prepared[i].motion for i in members])
             merged = drape(self.body, first.shape, motion, first.assets, first.options, neutral=self.neutral_shape,
-                           segments=[prepared[i].motion.num_frames for i in members], defaults=self.defaults)
+                           segments=[prepared[i].motion.num_frames for i in members], defaults=self.defaults, models=self.models)
             for i, r in zip(members, split_result(merged, [prepared[i].motion for i in members])):
                 results[i] = r
         return results  # type: ignore[return-value]
@@ -265,6 +278,7 @@ class Runtime:
             "frames": motion.num_frames,
             "phenotypes": dict(zip(PHENOTYPE_LABELS, map(float, shape.phenotypes[0]))),
             "model_versions": versions, "options": o.model_dump(),
+            "assets_sha256": self.assets.combined, "asset_files_sha256": self.used_files(p, result),
         }
         tracks = [
             GarmentTrack(name=g.asset.id, vertices=g.vertices, faces=g.asset.faces, uvs=g.asset.uvs, face_uvs=g.asset.face_uvs,
@@ -290,6 +304,19 @@ class Runtime:
             "Server-Timing": ", ".join(f"{k};dur={v:.1f}" for k, v in timings.items()),
         }
         return DrapeOutput(payload=payload, headers=headers, timings_ms=timings, model_versions=versions)
+
+    def used_files(self, p: PreparedDrape, result: DrapeResult) -> dict[str, str]:
+        """The asset files this drape read, with the first 16 hex digits of their SHA-256."""
+        files = ["body/body.npz", "body/hm08_helpers.npz"]
+        if isinstance(p.request.motion, ClipMotion):
+            files.append(f"motions/{p.request.motion.clip}.npz")
+        for g in result.garments:
+            files.append(f"garments/{g.asset.id}/garment.npz")
+            if g.method.fit == "learned":
+                files.append(f"models/{g.asset.id}/{self.models.get(g.asset.id).meta['fit']['file']}")
+            if g.method.dynamics == "learned":
+                files.append(f"models/{g.asset.id}/{self.models.get(g.asset.id).meta['wrinkle']['file']}")
+        return {f: self.assets.short(f) for f in files}
 
     def run_drape(self, request: DrapeRequest) -> DrapeOutput:
         """One request, synchronously (raises the runtime's input errors)."""

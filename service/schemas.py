@@ -39,7 +39,7 @@ class BodySpec(_Strict):
 class ClipMotion(_Strict):
     """A bundled motion clip (see GET /v1/motions), retargeted to the requested body."""
 
-    type: Literal["clip"] = "clip"
+    type: Literal["clip"] = Field(description="the motion's kind (the discriminator: required)")
     clip: str = Field(pattern=ID_PATTERN, examples=["walk"])
     start_s: float = Field(0.0, ge=0.0, le=3600.0, allow_inf_nan=False, description="start time in the clip, seconds")
     duration_s: float | None = Field(None, gt=0.0, le=3600.0, allow_inf_nan=False, description="seconds to drape (default: to the end, within max_frames)")
@@ -51,7 +51,7 @@ Vec3 = Annotated[list[FiniteFloat], Len(3, 3)]
 class PoseMotion(_Strict):
     """An explicit pose sequence in the body model's pose contract (GET /v1/body-model)."""
 
-    type: Literal["poses"] = "poses"
+    type: Literal["poses"] = Field(description="the motion's kind (the discriminator: required)")
     fps: float = Field(30.0, gt=0.0, le=240.0, allow_inf_nan=False)
     rotations: Annotated[list[Annotated[list[Vec3], Len(NUM_BONES, NUM_BONES)]], Len(1, 20_000)] = Field(
         description="(T, 31, 3) axis-angle per bone, radians, relative to the bone's rest orientation in its rest frame"
@@ -62,7 +62,7 @@ class PoseMotion(_Strict):
 class BvhMotion(_Strict):
     """A BVH file (CMU MotionBuilder, CMU 3ds Max or Mixamo joint names), retargeted onto the body."""
 
-    type: Literal["bvh"] = "bvh"
+    type: Literal["bvh"] = Field(description="the motion's kind (the discriminator: required)")
     bvh: str = Field(min_length=1, max_length=4 * 1024 * 1024, description="the BVH text")
     units: Literal["auto", "metres", "centimetres", "inches", "cmu"] = Field("auto", description="BVH length unit")
 
@@ -211,7 +211,11 @@ class ReadyResponse(BaseModel):
 
 
 class ProblemFieldError(BaseModel):
-    pointer: str = Field(description="JSON pointer into the request (/body/..., /path/..., /query/...)")
+    """One invalid field: ``pointer`` into the request body, or ``parameter`` (with ``in``)."""
+
+    pointer: str | None = Field(None, description="RFC 6901 JSON pointer into the request document (/motion/clip, /garments/0/id; '' the whole document)")
+    parameter: str | None = Field(None, description="the path, query or header parameter, by name")
+    in_: Literal["path", "query", "header", "cookie"] | None = Field(None, alias="in", description="where ``parameter`` is")
     detail: str
     type: str | None = None
 

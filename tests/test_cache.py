@@ -47,19 +47,20 @@ def test_if_none_match_answers_304(cache_client):
 def test_key_covers_request_model_versions_and_default_methods(monkeypatch):
     r = DrapeRequest.model_validate(BODY)
     shipped = default_methods()
-    key = request_key(r, "1", shipped)
-    assert key == request_key(DrapeRequest.model_validate(dict(reversed(list(BODY.items())))), "1", shipped)  # canonical
-    assert key != request_key(DrapeRequest.model_validate({**BODY, "format": "glb"}), "1", shipped)
+    key = request_key(r, "1", shipped, "a")
+    assert key == request_key(DrapeRequest.model_validate(dict(reversed(list(BODY.items())))), "1", shipped, "a")  # canonical
+    assert key != request_key(DrapeRequest.model_validate({**BODY, "format": "glb"}), "1", shipped, "a")
     # another default method for a garment (what omitted options run) is another key; another reason is not
     entries = {gid: DefaultMethod(**e) for gid, e in shipped.as_dict().items()}
     t = entries["tshirt"]
     other = DefaultMethod("retarget" if t.fit == "learned" else "learned", t.dynamics, t.reason, t.evidence)
-    assert key != request_key(r, "1", DefaultMethods({**entries, "tshirt": other}))
+    assert key != request_key(r, "1", DefaultMethods({**entries, "tshirt": other}), "a")
     reworded = DefaultMethod(t.fit, t.dynamics, t.reason + " (reworded)", t.evidence)
-    assert key == request_key(r, "1", DefaultMethods({**entries, "tshirt": reworded}))
+    assert key == request_key(r, "1", DefaultMethods({**entries, "tshirt": reworded}), "a")
+    assert key != request_key(r, "1", shipped, "b")  # other asset contents
     monkeypatch.setitem(cache_module.MODEL_VERSIONS, "fit", "learned-v2")
-    assert key != request_key(r, "1", shipped)
-    assert etag_matches(f'W/"{key}", "x"', key) and etag_matches(f'"{key}"', key) and etag_matches("*", key)
+    assert key != request_key(r, "1", shipped, "a")
+    assert etag_matches(f'W/"{key}", "x"', key) and etag_matches(f'"{key}"', key) and not etag_matches("*", key)
     assert not etag_matches(None, key) and not etag_matches('"abc"', key)
 
 

@@ -77,7 +77,7 @@ def test_bad_jobs_are_refused_or_fail_with_a_problem(jobs_client, tmp_path):
     assert c.post("/v1/jobs", json={**job_body(), "extra": 1}).status_code == 422
     bvh = {"motion": {"type": "bvh", "bvh": "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0"}, "garments": [{"id": "tshirt"}]}
     job = wait_for(c, c.post("/v1/jobs", json=bvh).headers["location"])
-    assert job["state"] == "failed" and job["error"]["status"] == 422 and job["error"]["errors"][0]["pointer"].startswith("/body/motion")
+    assert job["state"] == "failed" and job["error"]["status"] == 422 and job["error"]["errors"][0]["pointer"].startswith("/motion")
     assert c.get(f"/v1/jobs/{job['id']}/result").status_code == 409
     assert c.get("/v1/jobs/" + "0" * 32).status_code == 404
     assert c.get("/v1/jobs/not-an-id").status_code == 422

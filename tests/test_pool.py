@@ -183,7 +183,7 @@ def test_batch_with_a_bad_request_answers_each(runtime):
     good, bad = _request("walk"), _request("nope")  # an unknown clip
     outs = runtime.run_batch([good, bad, good])
     assert isinstance(outs[0], DrapeOutput) and isinstance(outs[2], DrapeOutput)
-    assert outs[1].status == 422 and outs[1].errors[0]["pointer"].startswith("/body/motion")
+    assert outs[1].status == 422 and outs[1].errors[0]["pointer"].startswith("/motion")
 
 
 def test_process_pool_runs_and_reports_health():

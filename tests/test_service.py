@@ -123,17 +123,17 @@ def test_pose_sequence_and_bvh_motions(client):
 @pytest.mark.parametrize(
     "patch, status, pointer",
     [
-        ({"garments": [{"id": "nope"}]}, 422, "/body/garments/0"),
-        ({"garments": []}, 422, "/body/garments"),
-        ({"body": {"phenotypes": {"age": 0.5}}}, 422, "/body/body/phenotypes/age"),
-        ({"body": {"phenotypes": {"weight": 1.5}}}, 422, "/body/body/phenotypes/weight"),
-        ({"motion": {"type": "clip", "clip": "nope"}}, 422, "/body/motion"),
-        ({"motion": {"type": "clip", "clip": "dance", "duration_s": 60}}, 422, "/body/motion"),
-        ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 30], "translation": [[0, 0, 0]]}}, 422, "/body/motion"),
-        ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 31] * 2, "translation": [[0, 0, 0]]}}, 422, "/body/motion/translation"),
-        ({"motion": {"type": "bvh", "bvh": "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0"}}, 422, "/body/motion"),
-        ({"format": "obj"}, 422, "/body/format"),
-        ({"extra": 1}, 422, "/body/extra"),
+        ({"garments": [{"id": "nope"}]}, 422, "/garments/0"),
+        ({"garments": []}, 422, "/garments"),
+        ({"body": {"phenotypes": {"age": 0.5}}}, 422, "/body/phenotypes/age"),
+        ({"body": {"phenotypes": {"weight": 1.5}}}, 422, "/body/phenotypes/weight"),
+        ({"motion": {"type": "clip", "clip": "nope"}}, 422, "/motion"),
+        ({"motion": {"type": "clip", "clip": "dance", "duration_s": 60}}, 422, "/motion"),
+        ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 30], "translation": [[0, 0, 0]]}}, 422, "/motion"),
+        ({"motion": {"type": "poses", "rotations": [[[0, 0, 0]] * 31] * 2, "translation": [[0, 0, 0]]}}, 422, "/motion/translation"),
+        ({"motion": {"type": "bvh", "bvh": "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0"}}, 422, "/motion"),
+        ({"format": "obj"}, 422, "/format"),
+        ({"extra": 1}, 422, "/extra"),
     ],
 )
 def test_bad_input_gets_problem_json(client, patch, status, pointer):
@@ -142,7 +142,7 @@ def test_bad_input_gets_problem_json(client, patch, status, pointer):
 
 def test_nan_and_inf_are_rejected(client):
     body = '{"motion": {"type": "poses", "rotations": [' + ",".join(["[NaN, 0, 0]"] * 31).join("[]") + '], "translation": [[0, 0, Infinity]]}, "garments": [{"id": "tshirt"}]}'
-    _problem(client.post("/v1/drape", content=body, headers={"content-type": "application/json"}), 422, "/body/motion")
+    _problem(client.post("/v1/drape", content=body, headers={"content-type": "application/json"}), 422, "/motion")
 
 
 def test_oversized_body_is_413(client, settings):
@@ -150,8 +150,8 @@ def test_oversized_body_is_413(client, settings):
     _problem(client.post("/v1/drape", content=big, headers={"content-type": "application/json"}), 413)
 
 
-def test_malformed_json_is_422(client):
-    _problem(client.post("/v1/drape", content=b"{not json", headers={"content-type": "application/json"}), 422)
+def test_malformed_json_is_400(client):
+    _problem(client.post("/v1/drape", content=b"{not json", headers={"content-type": "application/json"}), 400)
 
 
 def test_learned_models_are_selectable(client):

@@ -48,6 +48,7 @@ def _get(request: Request, job_id: str) -> JobRecord:
         202: {"description": "accepted: poll the Location", "headers": {"Location": {"schema": {"type": "string"}, "description": "the job's URL"}}},
         400: {"description": "the body is not parseable JSON", **_PROBLEM},
         413: {"description": "request body too large", **_PROBLEM},
+        415: {"description": "the body is not application/json", **_PROBLEM},
         422: {"description": "invalid request: the problem names the field", **_PROBLEM},
         503: {"description": "jobs are disabled or the queue is unavailable", **_PROBLEM},
     },

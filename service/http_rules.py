@@ -1,0 +1,55 @@
+"""HTTP semantics the framework leaves out (pure ASGI middleware).
+
+- ``HeadAsGet``: HEAD on any GET route answers the GET's status and headers without the body
+  (RFC 9110 §9.3.2; FastAPI routes declare GET only, so HEAD would be 405).
+- ``JsonOnly``: a POST with a body to a JSON route must say ``Content-Type: application/json``
+  (or ``+json``); anything else is 415 with ``Accept-Post`` (RFC 9110 §15.5.16), before the
+  body is parsed.
+"""
+from __future__ import annotations
+
+import json
+
+from service.errors import PROBLEM_JSON
+
+
+class HeadAsGet:
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            return await self.app(scope, receive, send)
+
+        async def headers_only(message):
+            if message["type"] == "http.response.body":
+                if message.get("more_body", False):
+                    return  # the rest of the body follows: send nothing until the last message
+                message = {"type": "http.response.body", "body": b""}
+            await send(message)
+
+        await self.app({**scope, "method": "GET"}, receive, headers_only)
+
+
+def is_json(content_type: str) -> bool:
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
+
+
+class JsonOnly:
+    def __init__(self, app, paths: frozenset[str]):
+        self.app, self.paths = app, paths
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "http" and scope["method"] == "POST" and scope.get("path") in self.paths:
+            content_type = dict(scope.get("headers") or []).get(b"content-type", b"").decode("latin-1")
+            if not is_json(content_type):
+                body = json.dumps({"type": "about:blank", "title": "Unsupported media type", "status": 415,
+                                   "detail": f"the body must be application/json, not {content_type[:100] or 'unlabelled'!r}",
+                                   "instance": scope.get("path", "")}).encode()
+                await send({"type": "http.response.start", "status": 415,
+                            "headers": [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(body)).encode()),
+                                        (b"accept-post", b"application/json")]})
+                await send({"type": "http.response.body", "body": body})
+                return
+        await self.app(scope, receive, send)

@@ -1,0 +1,98 @@
+"""The HTTP contract where the framework's defaults differ from the RFCs (audit D6-D9): field
+pointers into the request document (RFC 6901), 400 for unparseable JSON, 415 for a body that
+is not JSON, 413 for a streamed body past the limit, HEAD on GET routes, 412 for
+``If-None-Match: *`` on POST, and a contract whose limits are the server's."""
+from __future__ import annotations
+
+import json
+
+from service.errors import field_of
+
+CLIP = {"motion": {"type": "clip", "clip": "a_pose", "duration_s": 0.03}, "garments": [{"id": "tshirt"}], "format": "npz",
+        "options": {"include_body": False}}
+
+
+def _errors(r, status):
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith("application/problem+json")
+    return r.json().get("errors", [])
+
+
+def test_pointers_are_rfc6901_pointers_into_the_request(client):
+    bad_weight = {**CLIP, "body": {"phenotypes": {"weight": 7.0}}}
+    assert [e["pointer"] for e in _errors(client.post("/v1/drape", json=bad_weight), 422)] == ["/body/phenotypes/weight"]
+    bad_start = {**CLIP, "motion": {**CLIP["motion"], "start_s": -1.0}}
+    assert [e["pointer"] for e in _errors(client.post("/v1/drape", json=bad_start), 422)] == ["/motion/start_s"]
+    unknown_clip = {**CLIP, "motion": {"type": "clip", "clip": "nope"}}
+    assert [e["pointer"] for e in _errors(client.post("/v1/drape", json=unknown_clip), 422)] == ["/motion/clip"]
+    unknown_garment = {**CLIP, "garments": [{"id": "tshirt"}, {"id": "nope"}]}
+    assert [e["pointer"] for e in _errors(client.post("/v1/drape", json=unknown_garment), 422)] == ["/garments/1/id"]
+    job = _errors(client.get("/v1/jobs/not-an-id"), 422)
+    assert job[0]["parameter"] == "job_id" and job[0]["in"] == "path" and "pointer" not in job[0]
+
+
+def test_pointer_escapes_and_tags():
+    assert field_of(("body", "motion", "clip", "clip")) == {"pointer": "/motion/clip"}
+    assert field_of(("body", "motion")) == {"pointer": "/motion"}
+    assert field_of(("body", "a/b", "m~n")) == {"pointer": "/a~1b/m~0n"}
+    assert field_of(("body",)) == {"pointer": ""}
+
+
+def test_the_motion_type_is_required_and_documented_so(client):
+    untyped = {**CLIP, "motion": {"clip": "a_pose"}}
+    assert [e["pointer"] for e in _errors(client.post("/v1/drape", json=untyped), 422)] == ["/motion"]
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    for name in ("ClipMotion", "PoseMotion", "BvhMotion"):
+        assert "type" in schemas[name]["required"], name
+
+
+def test_contract_limits_are_the_servers(client, settings):
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    assert schemas["DrapeRequest"]["properties"]["garments"]["maxItems"] == settings.max_garments
+    assert schemas["PoseMotion"]["properties"]["rotations"]["maxItems"] == settings.max_source_frames
+    too_many = {**CLIP, "garments": [{"id": g} for g in ("tshirt", "longsleeve", "trousers", "dress", "jacket")][: settings.max_garments + 1]}
+    assert len(too_many["garments"]) > settings.max_garments
+    assert [e["pointer"] for e in _errors(client.post("/v1/drape", json=too_many), 422)] == ["/garments"]
+
+
+def test_unparseable_json_is_400_and_a_non_json_body_415(client):
+    r = client.post("/v1/drape", content=b'{"motion": ', headers={"content-type": "application/json"})
+    assert r.status_code == 400 and r.json()["title"] == "Malformed JSON", r.text
+    for content_type in ("text/plain", "application/x-www-form-urlencoded", None):
+        headers = {"content-type": content_type} if content_type else {}
+        r = client.post("/v1/drape", content=json.dumps(CLIP).encode(), headers=headers)
+        assert r.status_code == 415 and r.headers["accept-post"] == "application/json", (content_type, r.text)
+    r = client.post("/v1/jobs", content=b"x", headers={"content-type": "text/csv"})
+    assert r.status_code == 415
+    r = client.post("/v1/drape", content=json.dumps(CLIP).encode(), headers={"content-type": "application/json; charset=utf-8"})
+    assert r.status_code == 200, r.text
+
+
+def test_a_streamed_body_past_the_limit_is_413(client, settings):
+    def chunks():
+        piece = b" " * 65536
+        for _ in range(settings.max_request_bytes // len(piece) + 2):
+            yield piece
+
+    r = client.post("/v1/drape", content=chunks(), headers={"content-type": "application/json"})
+    assert "content-length" not in {k.lower() for k in r.request.headers}  # chunked: the size is only known by reading
+    assert r.status_code == 413 and r.json()["title"] == "Request too large", r.text
+
+
+def test_head_answers_the_gets_headers_without_a_body(client):
+    for path in ("/v1/garments", "/v1/garments/tshirt/template.glb", "/healthz"):
+        get, head = client.get(path), client.head(path)
+        assert head.status_code == get.status_code == 200, (path, head.text)
+        assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
+        assert head.headers.get("content-length") == str(len(get.content))
+    assert client.head("/v1/garments/nope").status_code == 404
+
+
+def test_if_none_match_star_on_post_is_412_after_validation(client):
+    r = client.post("/v1/drape", json=CLIP, headers={"if-none-match": "*"})
+    assert r.status_code == 412, r.text
+    invalid = {**CLIP, "garments": []}
+    assert client.post("/v1/drape", json=invalid, headers={"if-none-match": "*"}).status_code == 422
+    first = client.post("/v1/drape", json=CLIP)
+    assert first.status_code == 200
+    assert client.post("/v1/drape", json=CLIP, headers={"if-none-match": first.headers["etag"]}).status_code == 304
