@@ -59,7 +59,7 @@ class ProcessWorker:
 
         ctx = _context(self.settings.worker_blas_threads)
         parent, child = ctx.Pipe()
-        self.proc = ctx.Process(target=serve_pipe, args=(child, self.settings), name=f"tryon-worker-{self.index}", daemon=True)
+        self.proc = ctx.Process(target=serve_pipe, args=(child, self.settings, os.getpid()), name=f"tryon-worker-{self.index}", daemon=True)
         self.proc.start()
         child.close()
         self.conn = parent

@@ -14,6 +14,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import select
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,12 +57,44 @@ class _Stop(Exception):
     """The parent asked the worker to stop while a job was running."""
 
 
-def serve_pipe(conn, settings) -> None:
-    """Pool worker process main loop (spawned by service.pool.ProcessWorker)."""
+def exit_with(pid: int, poll_s: float = 0.5) -> threading.Thread:
+    """Exit this process as soon as process ``pid`` (the API that owns the pool) is gone, even
+    while the main thread is busy with a long drape: a daemon thread waits on a pidfd (readable
+    when ``pid`` exits; no pid-reuse race), or polls ``kill(pid, 0)`` where pidfds are missing.
+    Pool workers are children of the forkserver, not of the API, so the pipe's EOF (seen only
+    between messages) and PR_SET_PDEATHSIG (the forkserver's death) do not cover it."""
+    def watch():
+        try:
+            fd = os.pidfd_open(pid)
+        except (AttributeError, OSError):
+            fd = None
+        if fd is not None:
+            select.select([fd], [], [])
+        else:
+            while True:
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    break
+                except PermissionError:
+                    pass
+                time.sleep(poll_s)
+        os._exit(0)
+
+    thread = threading.Thread(target=watch, name="tryon-parent-watch", daemon=True)
+    thread.start()
+    return thread
+
+
+def serve_pipe(conn, settings, parent_pid: int | None = None) -> None:
+    """Pool worker process main loop (spawned by service.pool.ProcessWorker); the worker exits
+    when ``parent_pid`` (the API process) dies, busy or not."""
     from service.errors import problem_from_exception
     from service.logs import configure_logging
     from service.runtime import Runtime
 
+    if parent_pid is not None:
+        exit_with(parent_pid)
     configure_logging(settings.log_level, settings.log_json)
     runtime = Runtime.load(settings)
     conn.send(("ready", os.getpid()))
