@@ -8,6 +8,7 @@ stack trace ever reaches a client. Unparseable JSON is 400 (RFC 9110), a body th
 """
 from __future__ import annotations
 
+import errno
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,6 +62,8 @@ def problem_from_exception(exc: BaseException) -> ProblemDetail:
         return ProblemDetail(422, "Malformed motion", str(exc)[:1000], [{"pointer": "/motion", "detail": str(exc)[:1000]}])
     if isinstance(exc, InferenceInputError):
         return ProblemDetail(422, "Invalid input", str(exc), [{"pointer": exc.field, "detail": exc.detail}])
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        return ProblemDetail(507, "Insufficient storage", "the result could not be stored: the disk is full", headers={"Retry-After": "60"})
     return ProblemDetail(500, "Internal error", "the server failed to process the request")
 
 

@@ -3,6 +3,12 @@ process's worker pool. An accepted job (its row committed, fsynced, before the 2
 lost: a job whose owner dies is re-queued (at start-up for this host's own dead processes, after
 ``job_lease_s`` without a lease renewal for any other), up to ``job_max_attempts`` runs.
 
+A full disk does not wedge the store: ``RESERVE_BYTES`` of ballast (``jobs_dir/reserve``) are
+set aside at start-up; when a write fails for lack of space the ballast is deleted and the write
+retried, so that running jobs can still be finished (failed with a 507 problem), cancelled and
+deleted. The store is then ``degraded``: new jobs get 507, queued jobs wait (they are not lost),
+``/readyz`` says so, until the disk has room for the ballast again.
+
 Schema (one table; the request is stored as validated JSON, results live in ``results/<id>.<fmt>``):
 
     jobs(id TEXT PRIMARY KEY,              -- uuid4 hex
@@ -20,9 +26,11 @@ Schema (one table; the request is stored as validated JSON, results live in ``re
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import logging
 import os
+import shutil
 import socket
 import sqlite3
 import threading
@@ -88,6 +96,21 @@ def new_job_id() -> str:
     return uuid.uuid4().hex
 
 
+RESERVE_BYTES = 8 * 1024 * 1024  # ballast: room for the writes that finish, fail and delete jobs once the disk is full
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def out_of_space(exc: BaseException) -> bool:
+    """A write failed for lack of space: ENOSPC / EDQUOT / EFBIG, or SQLite's SQLITE_FULL."""
+    if isinstance(exc, OSError) and exc.errno in NO_SPACE:
+        return True
+    return isinstance(exc, sqlite3.OperationalError) and ("full" in str(exc) or "disk I/O" in str(exc))
+
+
+def storage_problem() -> ProblemDetail:
+    return ProblemDetail(507, "Insufficient storage", "the job store's disk is full; retry later", headers={"Retry-After": "60"})
+
+
 class SqliteJobStore:
     """The jobs table (thread-safe: one connection behind a lock, autocommit, WAL, fsync on commit)."""
 
@@ -105,17 +128,70 @@ class SqliteJobStore:
             self.db.executescript(SCHEMA)
         self.host = socket.gethostname()
         self.owner = f"{self.host}:{os.getpid()}"
+        self.reserve = self.dir / "reserve"
+        self.degraded = False
+        self.restore_reserve()
 
     def close(self) -> None:
         with self._lock:
             self.db.close()
 
     def _exec(self, sql: str, args: tuple = ()) -> list[sqlite3.Row]:
+        """One statement; a write that fails for lack of space frees the ballast and is retried
+        once (the store becomes ``degraded``)."""
         with self._lock:
-            return self.db.execute(sql, args).fetchall()
+            try:
+                return self.db.execute(sql, args).fetchall()
+            except (sqlite3.OperationalError, OSError) as exc:
+                if not out_of_space(exc) or not self._release_reserve():
+                    raise
+                return self.db.execute(sql, args).fetchall()
+
+    def _release_reserve(self) -> bool:
+        """Delete the ballast (False when there was none left to free)."""
+        if not self.reserve.exists():
+            self.degraded = True
+            return False
+        self.reserve.unlink()
+        if not self.degraded:
+            log.error("jobs: the disk under %s is full; freed the %d MiB reserve, new jobs are refused (507) until there is room",
+                      self.dir, RESERVE_BYTES >> 20)
+        self.degraded = True
+        return True
+
+    def mark_full(self) -> None:
+        """Another writer (a worker's result file) ran out of space: free the ballast, degrade."""
+        with self._lock:
+            self._release_reserve()
+
+    def restore_reserve(self) -> bool:
+        """Write the ballast back when the disk has room for it twice over; clears ``degraded``."""
+        if self.reserve.exists() and self.reserve.stat().st_size == RESERVE_BYTES:
+            return True
+        try:
+            if shutil.disk_usage(self.dir).free < 2 * RESERVE_BYTES:
+                raise OSError(errno.ENOSPC, "no room for the reserve")
+            with open(self.reserve, "wb") as f:
+                f.write(b"\0" * RESERVE_BYTES)
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError:
+            self.reserve.unlink(missing_ok=True)
+            self.degraded = True
+            return False
+        if self.degraded:
+            log.info("jobs: the disk under %s has room again; taking new jobs", self.dir)
+        self.degraded = False
+        return True
+
+    def ping(self) -> bool:
+        """Ready: not degraded by a full disk."""
+        return not self.degraded
 
     # ------------------------------------------------------------------ API side
     def create(self, request: DrapeRequest) -> JobRecord:
+        if self.degraded:
+            raise storage_problem().exception()
         now = time.time()
         job_id = new_job_id()
         self._exec("INSERT INTO jobs (id, state, request, format, created_at, updated_at) VALUES (?, 'queued', ?, ?, ?, ?)",
@@ -247,13 +323,16 @@ class JobRunner:
 
     async def _loop(self) -> None:
         tick = 0
+        last_error = ""
         while True:
             try:
                 if tick % 20 == 0:
+                    if self.store.degraded:
+                        self.store.restore_reserve()
                     self.store.recover()
                     self.store.expire()
                 tick += 1
-                while len(self._active) < self.settings.job_concurrency:
+                while len(self._active) < self.settings.job_concurrency and not self.store.degraded:  # a full disk: queued jobs wait
                     claimed = self.store.claim()
                     if claimed is None:
                         break
@@ -264,8 +343,11 @@ class JobRunner:
                 if self.metrics is not None:
                     for state, n in self.store.counts().items():
                         self.metrics.jobs.labels(state).set(n)
-            except Exception:  # noqa: BLE001 - the loop must survive a failed poll (disk full, lock)
-                log.exception("job loop")
+                last_error = ""
+            except Exception as exc:  # noqa: BLE001 - the loop must survive a failed poll (disk full, lock)
+                if repr(exc) != last_error:  # once per distinct failure, not every poll
+                    log.exception("job loop")
+                last_error = repr(exc)
             self._wakeup.clear()
             try:
                 await asyncio.wait_for(self._wakeup.wait(), self.settings.job_poll_s)
@@ -283,17 +365,28 @@ class JobRunner:
         async def heartbeat():
             while True:
                 await asyncio.sleep(self.settings.job_lease_s / 3)
-                store.renew(job_id)
+                try:
+                    store.renew(job_id)
+                except Exception:  # noqa: BLE001 - a failed renewal (full disk) is retried on the next beat
+                    log.warning("job %s: lease renewal failed", job_id)
+
+        def on_progress(done: int, total: int) -> bool:
+            try:
+                return not store.renew(job_id, done, total)
+            except Exception:  # noqa: BLE001 - progress not recorded this time; the job goes on
+                return False
 
         beat = asyncio.create_task(heartbeat())
         try:
-            outcome = await self.pool.run_job(request, path, lambda done, total: not store.renew(job_id, done, total))
+            outcome = await self.pool.run_job(request, path, on_progress)
             if outcome is None:  # cancelled while running
                 path.unlink(missing_ok=True)
             elif isinstance(outcome, JobOutcome):
                 if not store.finish(job_id, "succeeded", result_bytes=outcome.result_bytes, headers=outcome.headers, frames=outcome.frames):
                     path.unlink(missing_ok=True)  # cancelled meanwhile
             else:
+                if outcome.status == 507:  # the worker could not write the result: the disk is full
+                    store.mark_full()
                 store.finish(job_id, "failed", error=outcome)
         except WorkerCrashed as exc:
             log.error("job %s: %s", job_id, exc)
@@ -307,9 +400,14 @@ class JobRunner:
         except asyncio.CancelledError:
             store.release(job_id)
             raise
-        except Exception:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001
             log.exception("job %s", job_id)
-            store.finish(job_id, "failed", error=ProblemDetail(500, "Job failed", "the server failed to process the job"))
+            path.unlink(missing_ok=True)
+            problem = storage_problem() if out_of_space(exc) else ProblemDetail(500, "Job failed", "the server failed to process the job")
+            try:
+                store.finish(job_id, "failed", error=problem)
+            except Exception:  # noqa: BLE001 - not even the reserve helped: the lease runs out and recover() takes over
+                log.exception("job %s: could not record its failure", job_id)
         finally:
             beat.cancel()
 

@@ -34,14 +34,19 @@ class JobOutcome:
 
 
 def write_atomic(path: Path, payload: bytes) -> None:
-    """Write then rename, fsynced: a crash never leaves a partial result under ``path``."""
+    """Write then rename, fsynced: a crash never leaves a partial result under ``path``, and a
+    failed write leaves no temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(payload)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:  # a full disk (ENOSPC) or a kill: no partial file is left behind
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def execute_job(runtime, request, result_path: Path, progress) -> "JobOutcome | None":

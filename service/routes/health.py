@@ -27,7 +27,8 @@ def readyz(request: Request) -> ReadyResponse:
         raise ProblemException(503, "Not ready", "no inference worker is alive (or the service is shutting down)", headers={"Retry-After": "1"})
     ping = getattr(state.job_store, "ping", None)
     if ping is not None and not ping():
-        raise ProblemException(503, "Not ready", "the job queue (Redis) does not answer", headers={"Retry-After": "5"})
+        detail = "the job store's disk is full" if getattr(state.job_store, "degraded", False) else "the job queue (Redis) does not answer"
+        raise ProblemException(503, "Not ready", detail, headers={"Retry-After": "5"})
     return ReadyResponse(
         status="ready", garments=len(runtime.catalog.ids()), motions=len(runtime.clips.ids()),
         workers=[ReadyWorker(**w) for w in pool.worker_health()], queue_depth=pool.queue_depth,

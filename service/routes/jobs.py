@@ -51,6 +51,7 @@ def _get(request: Request, job_id: str) -> JobRecord:
         415: {"description": "the body is not application/json", **_PROBLEM},
         422: {"description": "invalid request: the problem names the field", **_PROBLEM},
         503: {"description": "jobs are disabled or the queue is unavailable", **_PROBLEM},
+        507: {"description": "the job store's disk is full: retry after the Retry-After seconds", **_PROBLEM},
     },
 )
 async def post_job(
@@ -63,6 +64,8 @@ async def post_job(
     request.app.state.runtime.check_request(drape_request, RequestLimits.job(request.app.state.runtime.settings))
     try:
         record = store.create(drape_request)
+    except ProblemException:
+        raise
     except Exception as exc:  # noqa: BLE001 - the queue (Redis, disk) is unavailable: nothing was accepted
         raise ProblemException(503, "Queue unavailable", "the job could not be stored; retry", headers={"Retry-After": "5"}) from exc
     runner = request.app.state.job_runner
@@ -99,8 +102,15 @@ def get_job_result(request: Request, job_id: str = Path(pattern=JOB_ID_PATTERN))
     return FileResponse(path, media_type=MEDIA_TYPES[record.format], headers=headers)
 
 
-@router.delete("/{job_id}", status_code=204, response_class=Response, responses={204: {"description": "cancelled (queued or running) or deleted (finished)"}, **_NOT_FOUND})
+@router.delete("/{job_id}", status_code=204, response_class=Response, responses={204: {"description": "cancelled (queued or running) or deleted (finished)"}, **_NOT_FOUND,
+                                                                             503: {"description": "the store cannot be written now: retry", **_PROBLEM}})
 def delete_job(request: Request, job_id: str = Path(pattern=JOB_ID_PATTERN)):
-    if _store(request).cancel(job_id) is None:
+    try:
+        cancelled = _store(request).cancel(job_id)
+    except ProblemException:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the store cannot write (a full disk past its reserve): retry, not 500
+        raise ProblemException(503, "Store unavailable", "the job could not be changed; retry", headers={"Retry-After": "30"}) from exc
+    if cancelled is None:
         raise ProblemException(404, "Not found", f"no job {job_id!r}")
     return Response(status_code=204)
