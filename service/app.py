@@ -105,6 +105,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     install_body_size_limit(app, settings.max_request_bytes, {"/v1/jobs": settings.job_max_request_bytes})
     app.add_middleware(JsonOnly, paths=frozenset({"/v1/drape", "/v1/jobs"}))
     keys = settings.api_key_set()
+    app.state.auth_on = bool(keys)  # job quotas are per key only where keys are checked
     if keys:
         app.add_middleware(ApiKeyAuth, keys=keys, header=settings.api_key_header)
     origins = settings.cors_origin_list()

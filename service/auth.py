@@ -22,6 +22,14 @@ def key_matches(candidate: str, keys: list[bytes]) -> bool:
     return found
 
 
+def client_id(headers, header: str) -> str:
+    """Who a job belongs to, for per-key quotas: a digest of the API key (never the key itself),
+    or ``anonymous`` without one (call it only where the keys are checked: an unchecked header
+    would let a client pick a fresh quota)."""
+    key = headers.get(header)
+    return "key:" + hashlib.sha256(key.encode("utf-8", "surrogateescape")).hexdigest()[:16] if key else "anonymous"
+
+
 class ApiKeyAuth:
     """Pure ASGI middleware (runs before the body is read)."""
 

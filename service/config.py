@@ -61,6 +61,8 @@ class Settings(BaseSettings):
     job_lease_s: float = Field(15.0, gt=0, description="a running job whose owner stops renewing this long is re-queued")
     job_max_attempts: int = Field(3, ge=1, description="runs of a job (restarts, worker crashes) before it fails")
     job_poll_s: float = Field(0.5, gt=0)
+    job_max_pending: int = Field(256, ge=1, description="queued + running jobs in the store before POST /v1/jobs answers 429")
+    job_max_pending_per_key: int = Field(32, ge=1, description="queued + running jobs per API key (per deployment without keys) before 429")
 
     # Content-addressed result cache (identical request + model versions -> same output)
     cache_max_bytes: int = Field(256 * 1024 * 1024, ge=0, description="in-memory result cache (0: off)")

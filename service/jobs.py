@@ -20,7 +20,8 @@ Schema (one table; the request is stored as validated JSON, results live in ``re
          error TEXT,                       -- failed: the problem document (JSON)
          result_bytes INTEGER, headers TEXT,
          created_at REAL, updated_at REAL, started_at REAL, finished_at REAL,
-         expires_at REAL)                  -- finished: row and result deleted after this
+         expires_at REAL,                  -- finished: row and result deleted after this
+         client TEXT)                      -- who asked (service.auth.client_id), for the per-key quota
     INDEX jobs_queue ON jobs(state, created_at);  INDEX jobs_expiry ON jobs(expires_at)
 """
 from __future__ import annotations
@@ -68,7 +69,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     updated_at REAL NOT NULL,
     started_at REAL,
     finished_at REAL,
-    expires_at REAL
+    expires_at REAL,
+    client TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_queue ON jobs(state, created_at);
 CREATE INDEX IF NOT EXISTS jobs_expiry ON jobs(expires_at);
@@ -107,6 +109,15 @@ def out_of_space(exc: BaseException) -> bool:
     return isinstance(exc, sqlite3.OperationalError) and ("full" in str(exc) or "disk I/O" in str(exc))
 
 
+def quota_problem(mine: int, everyone: int, s: Settings) -> ProblemDetail:
+    """429: this client's unfinished jobs, or the store's, are at their bound."""
+    if mine >= s.job_max_pending_per_key:
+        detail = f"{mine} of your jobs are queued or running (at most {s.job_max_pending_per_key}); wait for one to finish"
+    else:
+        detail = f"the job queue is full ({everyone} queued or running, at most {s.job_max_pending}); retry later"
+    return ProblemDetail(429, "Too many jobs", detail, headers={"Retry-After": str(max(5, int(s.job_poll_s * 20)))})
+
+
 def storage_problem() -> ProblemDetail:
     return ProblemDetail(507, "Insufficient storage", "the job store's disk is full; retry later", headers={"Retry-After": "60"})
 
@@ -126,6 +137,8 @@ class SqliteJobStore:
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=FULL")
             self.db.executescript(SCHEMA)
+            if "client" not in {r["name"] for r in self.db.execute("PRAGMA table_info(jobs)")}:  # a store from before the quota
+                self.db.execute("ALTER TABLE jobs ADD COLUMN client TEXT")
         self.host = socket.gethostname()
         self.owner = f"{self.host}:{os.getpid()}"
         self.reserve = self.dir / "reserve"
@@ -189,14 +202,28 @@ class SqliteJobStore:
         return not self.degraded
 
     # ------------------------------------------------------------------ API side
-    def create(self, request: DrapeRequest) -> JobRecord:
+    def create(self, request: DrapeRequest, client: str = "anonymous") -> JobRecord:
+        """Queue a job, within the quotas (``job_max_pending`` in all, ``job_max_pending_per_key``
+        for ``client``), checked and inserted in one statement; 429 past either, 507 while the
+        disk is full."""
         if self.degraded:
             raise storage_problem().exception()
         now = time.time()
         job_id = new_job_id()
-        self._exec("INSERT INTO jobs (id, state, request, format, created_at, updated_at) VALUES (?, 'queued', ?, ?, ?, ?)",
-                   (job_id, request.model_dump_json(), request.format, now, now))
+        s = self.settings
+        rows = self._exec(
+            "INSERT INTO jobs (id, state, request, format, created_at, updated_at, client) SELECT ?, 'queued', ?, ?, ?, ?, ? "
+            "WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < ? "
+            "AND (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running') AND client = ?) < ? RETURNING id",
+            (job_id, request.model_dump_json(), request.format, now, now, client, s.job_max_pending, client, s.job_max_pending_per_key))
+        if not rows:
+            raise quota_problem(self.pending(client), self.pending(), s).exception()
         return self.get(job_id)
+
+    def pending(self, client: str | None = None) -> int:
+        """Queued + running jobs (of ``client``, or all)."""
+        where, args = ("AND client = ?", (client,)) if client is not None else ("", ())
+        return int(self._exec(f"SELECT COUNT(*) AS n FROM jobs WHERE state IN ('queued', 'running') {where}", args)[0]["n"])
 
     def get(self, job_id: str) -> JobRecord | None:
         rows = self._exec("SELECT * FROM jobs WHERE id = ?", (job_id,))

@@ -26,7 +26,7 @@ from rq.registry import CanceledJobRegistry, FailedJobRegistry, FinishedJobRegis
 
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
-from service.jobs import STATES, JobRecord, _problem_json, new_job_id
+from service.jobs import STATES, JobRecord, _problem_json, new_job_id, quota_problem
 from service.schemas import DrapeRequest
 
 log = logging.getLogger(__name__)
@@ -94,9 +94,30 @@ class RedisJobStore:
     def result_path(self, job_id: str, fmt: str) -> Path:
         return self.results_dir / f"{job_id}.{fmt}"
 
-    def create(self, request: DrapeRequest) -> JobRecord:
+    def pending(self, client: str | None = None) -> int:
+        """Queued + running jobs: of the queue, or of ``client`` (its set of job ids, pruned of
+        those that finished or expired; at most ``job_max_pending_per_key`` members to check)."""
+        if client is None:
+            return int(self.queue.count + StartedJobRegistry(queue=self.queue, connection=self.redis).count)
+        key = f"tryon:pending:{client}"
+        ids = [i.decode() for i in self.redis.zrange(key, 0, -1)]
+        jobs = Job.fetch_many(ids, connection=self.redis) if ids else []
+        done = [i for i, j in zip(ids, jobs) if j is None or STATUS.get(j.get_status(refresh=False), "queued") not in ("queued", "running")]
+        if done:
+            self.redis.zrem(key, *done)
+        return len(ids) - len(done)
+
+    def create(self, request: DrapeRequest, client: str = "anonymous") -> JobRecord:
+        """Queue a job within the quotas (429 past them). The check and the enqueue are two
+        steps: concurrent API replicas may overshoot a quota by the requests in flight."""
         job_id = new_job_id()
         s = self.settings
+        mine, everyone = self.pending(client), self.pending()
+        if mine >= s.job_max_pending_per_key or everyone >= s.job_max_pending:
+            raise quota_problem(mine, everyone, s).exception()
+        key = f"tryon:pending:{client}"
+        self.redis.zadd(key, {job_id: time.time()})
+        self.redis.expire(key, int(s.job_timeout_s + s.job_result_ttl_s))
         self.queue.enqueue_call(
             perform_job, args=(request.model_dump_json(), str(self.result_path(job_id, request.format))), job_id=job_id,
             timeout=int(s.job_timeout_s), result_ttl=int(s.job_result_ttl_s), failure_ttl=int(s.job_result_ttl_s),

@@ -158,3 +158,38 @@ def test_a_job_chunks_only_where_every_garments_resolved_dynamics_is_per_frame(t
     assert chunks(["tshirt", "trousers"]) == [0, 10]  # the trousers' GRU: one call
     assert chunks(["tshirt", "trousers"], dynamics="none") == [0, 4, 8, 10]  # named for all: static
     assert chunks(["tshirt"], dynamics="learned") == [0, 10]
+
+
+def test_job_quotas_per_key_and_in_all_answer_429(tmp_path, runtime):
+    """Audit D9: the job queue is bounded (``job_max_pending``) and so is each API key's share
+    (``job_max_pending_per_key``): 429 with Retry-After past either; a finished job frees its slot."""
+    keys = tmp_path / "keys"
+    keys.write_text("key-a\nkey-b\nkey-c\n")
+    s = make_settings(tmp_path, api_keys_file=keys, job_max_pending_per_key=1, job_max_pending=2)
+    long = job_body(240, guard=True)  # several seconds of work: still running while the next ones arrive
+    with TestClient(create_app(s, runtime), raise_server_exceptions=False) as c:
+        first = c.post("/v1/jobs", json=long, headers={"X-API-Key": "key-a"})
+        assert first.status_code == 202, first.text
+        again = c.post("/v1/jobs", json=long, headers={"X-API-Key": "key-a"})
+        assert again.status_code == 429 and int(again.headers["retry-after"]) > 0 and "your jobs" in again.json()["detail"], again.text
+        other = c.post("/v1/jobs", json=long, headers={"X-API-Key": "key-b"})
+        assert other.status_code == 202, other.text  # another key has its own share
+        full = c.post("/v1/jobs", json=long, headers={"X-API-Key": "key-c"})
+        assert full.status_code == 429 and "queue is full" in full.json()["detail"], full.text
+        for r, key in ((first, "key-a"), (other, "key-b")):
+            assert c.delete(r.headers["location"], headers={"X-API-Key": key}).status_code == 204
+        freed = c.post("/v1/jobs", json=job_body(10), headers={"X-API-Key": "key-a"})
+        assert freed.status_code == 202, freed.text
+
+
+def test_store_quota_is_checked_with_the_insert(tmp_path):
+    store = SqliteJobStore(make_settings(tmp_path, job_max_pending_per_key=2, job_max_pending=3))
+    request = DrapeRequest.model_validate(job_body(10))
+    for client in ("a", "a", "b"):
+        store.create(request, client)
+    assert store.pending("a") == 2 and store.pending() == 3
+    for client in ("a", "b"):
+        with pytest.raises(Exception) as refused:
+            store.create(request, client)
+        assert refused.value.status == 429
+    store.close()

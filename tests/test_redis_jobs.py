@@ -130,3 +130,19 @@ def test_readyz_fails_when_redis_is_unreachable(runtime, tmp_path):
         assert c.get("/readyz").status_code == 503
         r = c.post("/v1/jobs", json=BODY)
         assert r.status_code == 503 and r.headers["retry-after"] == "5"
+
+
+def test_redis_job_quotas_answer_429(redis_settings, runtime, tmp_path):
+    """No worker runs: every job stays queued, so the per-key and total bounds are reached."""
+    keys = tmp_path / "keys"
+    keys.write_text("key-a\nkey-b\n")
+    s = redis_settings.model_copy(update={"api_keys_file": keys, "job_max_pending_per_key": 2, "job_max_pending": 3,
+                                          "redis_queue": redis_settings.redis_queue + "-quota"})
+    with TestClient(create_app(s, runtime), raise_server_exceptions=False) as c:
+        a = [c.post("/v1/jobs", json=BODY, headers={"X-API-Key": "key-a"}) for _ in range(3)]
+        assert [r.status_code for r in a] == [202, 202, 429], a[-1].text
+        assert "your jobs" in a[-1].json()["detail"] and a[-1].headers["retry-after"]
+        b = [c.post("/v1/jobs", json=BODY, headers={"X-API-Key": "key-b"}) for _ in range(2)]
+        assert [r.status_code for r in b] == [202, 429] and "queue is full" in b[-1].json()["detail"]
+        assert c.delete(a[0].headers["location"], headers={"X-API-Key": "key-a"}).status_code == 204
+        assert c.post("/v1/jobs", json=BODY, headers={"X-API-Key": "key-a"}).status_code == 202  # the cancelled job's slot

@@ -4,6 +4,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Body, Path, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
+from service.auth import client_id
 from service.errors import ProblemException
 from service.jobs import MEDIA_TYPES, JobRecord
 from service.schemas import DRAPE_EXAMPLE, DrapeRequest, JobProgress, JobResponse
@@ -49,6 +50,7 @@ def _get(request: Request, job_id: str) -> JobRecord:
         400: {"description": "the body is not parseable JSON", **_PROBLEM},
         413: {"description": "request body too large", **_PROBLEM},
         415: {"description": "the body is not application/json", **_PROBLEM},
+        429: {"description": "too many unfinished jobs, for this API key or in all: retry after the Retry-After seconds", **_PROBLEM},
         422: {"description": "invalid request: the problem names the field", **_PROBLEM},
         503: {"description": "jobs are disabled or the queue is unavailable", **_PROBLEM},
         507: {"description": "the job store's disk is full: retry after the Retry-After seconds", **_PROBLEM},
@@ -63,7 +65,8 @@ async def post_job(
     store = _store(request)
     request.app.state.runtime.check_request(drape_request, RequestLimits.job(request.app.state.runtime.settings))
     try:
-        record = store.create(drape_request)
+        client = client_id(request.headers, request.app.state.settings.api_key_header) if request.app.state.auth_on else "anonymous"
+        record = store.create(drape_request, client)
     except ProblemException:
         raise
     except Exception as exc:  # noqa: BLE001 - the queue (Redis, disk) is unavailable: nothing was accepted
