@@ -66,6 +66,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         state = app.state
+        sweeper = None
         if state.runtime is None:
             # the API process drapes only with thread workers; process workers load the models themselves
             state.runtime = await asyncio.to_thread(Runtime.load, settings, settings.worker_mode == "thread")
@@ -81,10 +82,13 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
             from service.jobs_redis import RedisJobStore
 
             state.job_store = RedisJobStore(settings)
+            sweeper = asyncio.create_task(_sweep(state.job_store), name="tryon-redis-sweep")
         log.info("ready: %d garments, %d motions, jobs=%s", len(state.runtime.catalog.ids()), len(state.runtime.clips.ids()), settings.jobs_backend)
         try:
             yield
         finally:
+            if sweeper is not None:
+                sweeper.cancel()
             if state.job_runner is not None:
                 await state.job_runner.stop()
             await state.pool.close()
@@ -119,6 +123,16 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
         app.include_router(module.router, responses=COMMON_ERRORS)
     app.openapi = lambda: problem_openapi(app)
     return app
+
+
+async def _sweep(store) -> None:
+    """Redis backend: re-queue jobs whose worker died (``RedisJobStore.sweep_abandoned``)."""
+    while True:
+        await asyncio.sleep(store.sweep_every)
+        try:
+            await asyncio.to_thread(store.sweep_abandoned)
+        except Exception:  # noqa: BLE001 - Redis away: /readyz says so; try again next time
+            log.warning("jobs: the abandoned-job sweep failed", exc_info=True)
 
 
 class RequestContext:

@@ -61,6 +61,8 @@ class Settings(BaseSettings):
     job_lease_s: float = Field(15.0, gt=0, description="a running job whose owner stops renewing this long is re-queued")
     job_max_attempts: int = Field(3, ge=1, description="runs of a job (restarts, worker crashes) before it fails")
     job_poll_s: float = Field(0.5, gt=0)
+    job_abandoned_s: float = Field(20.0, ge=10.0, le=50.0, description="Redis backend: a running job whose worker has not "
+                                   "heartbeaten (every 5 s) for this long is re-queued (checked every few seconds, so within a minute)")
     job_max_pending: int = Field(256, ge=1, description="queued + running jobs in the store before POST /v1/jobs answers 429")
     job_max_pending_per_key: int = Field(32, ge=1, description="queued + running jobs per API key (per deployment without keys) before 429")
 

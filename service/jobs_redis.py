@@ -10,6 +10,12 @@ Dramatiq has no job status or progress without extra middleware and its own resu
 
 Results are files in ``<jobs_dir>/results`` (a volume shared by api and worker containers);
 RQ keeps the job record (state, progress, error) with ``result_ttl = job_result_ttl_s``.
+
+Abandoned jobs (worker and work-horse killed): RQ keeps a running job in its started registry
+with a score of its last heartbeat + ``HEARTBEAT_S`` + 60 s and re-queues it (per its Retry) only
+when a worker's maintenance, every 10 min by default, finds the score past. The API sweeps the
+registry every ``sweep_every`` seconds with a cutoff that treats ``job_abandoned_s`` without a
+heartbeat as abandoned, so such a job is queued again within ``job_abandoned_s`` + ``sweep_every``.
 """
 from __future__ import annotations
 
@@ -32,6 +38,8 @@ from service.schemas import DrapeRequest
 log = logging.getLogger(__name__)
 
 _RUNTIME = None  # loaded once by the worker process before it forks work-horses
+HEARTBEAT_S = 5  # the RQ worker's job_monitoring_interval: it refreshes a running job's registry score this often
+RQ_GRACE_S = 60  # RQ adds this to the heartbeat when it scores a running job (rq.worker: job_monitoring_interval + 60)
 
 STATUS = {
     JobStatus.CREATED: "queued", JobStatus.QUEUED: "queued", JobStatus.DEFERRED: "queued", JobStatus.SCHEDULED: "queued",
@@ -93,6 +101,21 @@ class RedisJobStore:
 
     def result_path(self, job_id: str, fmt: str) -> Path:
         return self.results_dir / f"{job_id}.{fmt}"
+
+    @property
+    def sweep_every(self) -> float:
+        return self.settings.job_abandoned_s / 4
+
+    def sweep_abandoned(self) -> int:
+        """Re-queue (or fail, when out of retries) running jobs without a heartbeat for
+        ``job_abandoned_s``; the number found."""
+        registry = StartedJobRegistry(queue=self.queue, connection=self.redis)
+        cutoff = time.time() + HEARTBEAT_S + RQ_GRACE_S - self.settings.job_abandoned_s
+        found = len(registry.get_expired_job_ids(cutoff))
+        if found:
+            registry.cleanup(timestamp=cutoff)
+            log.warning("re-queued %d abandoned job(s) (no worker heartbeat for %.0f s)", found, self.settings.job_abandoned_s)
+        return found
 
     def pending(self, client: str | None = None) -> int:
         """Queued + running jobs: of the queue, or of ``client`` (its set of job ids, pruned of
@@ -189,6 +212,7 @@ def run_rq_worker(settings: Settings, burst: bool = False) -> None:
     global _RUNTIME
     _RUNTIME = Runtime.load(settings)
     redis = Redis.from_url(settings.redis_url)
-    worker = Worker([Queue(settings.redis_queue, connection=redis)], connection=redis, job_monitoring_interval=5)
+    worker = Worker([Queue(settings.redis_queue, connection=redis)], connection=redis, job_monitoring_interval=HEARTBEAT_S,
+                    maintenance_interval=60)
     log.info("RQ worker on %s queue %s", settings.redis_url, settings.redis_queue)
     worker.work(burst=burst, logging_level=settings.log_level.upper())

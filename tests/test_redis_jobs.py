@@ -146,3 +146,40 @@ def test_redis_job_quotas_answer_429(redis_settings, runtime, tmp_path):
         assert [r.status_code for r in b] == [202, 429] and "queue is full" in b[-1].json()["detail"]
         assert c.delete(a[0].headers["location"], headers={"X-API-Key": "key-a"}).status_code == 204
         assert c.post("/v1/jobs", json=BODY, headers={"X-API-Key": "key-a"}).status_code == 202  # the cancelled job's slot
+
+
+def test_a_job_whose_worker_died_is_requeued_within_a_minute(redis_settings, runtime):
+    """Audit D3: kill -9 of the worker and its work-horse mid-job, and a new worker at once: the
+    job leaves 'running' once ``job_abandoned_s`` pass without a heartbeat (not after RQ's 10 min
+    maintenance), and the new worker finishes it."""
+    s = redis_settings.model_copy(update={"job_abandoned_s": 10.0})
+    options = {"include_body": False, "guard": True, "fit": "retarget", "dynamics": "none"}
+    long = {**BODY, "motion": {"type": "clip", "clip": "dance", "duration_s": 8.0}, "options": options}  # 241 frames in chunks of 20
+    with TestClient(create_app(s, runtime), raise_server_exceptions=False) as c:
+        url = c.post("/v1/jobs", json=long).headers["location"]
+        first = _worker(s)
+        try:
+            t0 = time.monotonic()
+            while c.get(url).json()["progress"]["frames_done"] == 0:
+                assert time.monotonic() - t0 < 60
+                time.sleep(0.02)
+        finally:
+            horses = subprocess.run(["pgrep", "-P", str(first.pid)], capture_output=True, text=True).stdout.split()
+            for pid in [first.pid, *map(int, horses)]:  # the worker and its work-horse (which has a session of its own)
+                os.kill(pid, signal.SIGKILL)
+            first.wait(10)
+        assert horses, "no work-horse"
+        killed = time.monotonic()
+        assert c.get(url).json()["state"] == "running"
+        second = _worker(s)
+        try:
+            while c.get(url).json()["state"] == "running" and c.get(url).json()["progress"]["frames_done"] > 0:
+                assert time.monotonic() - killed < 60, "the abandoned job still shows running"
+                time.sleep(0.2)
+            requeued = time.monotonic() - killed
+            assert requeued < s.job_abandoned_s + s.job_abandoned_s / 4 + 10
+            job = _wait(c, url)
+            assert job["state"] == "succeeded", job
+        finally:
+            os.killpg(second.pid, signal.SIGKILL)
+            second.wait(10)
