@@ -20,10 +20,11 @@ from service.http_rules import HeadAsGet, JsonOnly
 from service.limits import install_body_size_limit
 from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
+from service.parsing import RequestParser
 from service.pool import WorkerPool
 from service.routes import body_model, drape, garments, health, jobs, metrics, motions
 from service.runtime import Runtime
-from service.schemas import Problem
+from service.schemas import DrapeRequest, Problem
 
 log = logging.getLogger(__name__)
 access_log = logging.getLogger("service.access")
@@ -72,6 +73,8 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
             state.runtime = await asyncio.to_thread(Runtime.load, settings, settings.worker_mode == "thread")
         state.pool = WorkerPool(settings, state.runtime, state.metrics)
         await state.pool.start()
+        if settings.worker_mode == "process":
+            state.parser.start()  # large bodies are validated in a process of their own
         if settings.jobs_backend == "sqlite":
             from service.jobs import JobRunner, SqliteJobStore
 
@@ -92,6 +95,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
             if state.job_runner is not None:
                 await state.job_runner.stop()
             await state.pool.close()
+            state.parser.close()
             if state.job_store is not None:
                 state.job_store.close()
             log.info("stopped")
@@ -102,6 +106,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     app.state.metrics = Metrics()
     app.state.cache = ResultCache(settings.cache_max_bytes)
     app.state.pool = None
+    app.state.parser = RequestParser()
     app.state.job_store = None
     app.state.job_runner = None
     install_problem_handlers(app)
@@ -195,6 +200,10 @@ def problem_openapi(app: FastAPI) -> dict:
         components = schema.setdefault("components", {})
         schemas = components.setdefault("schemas", {})
         schemas.update(Problem.model_json_schema(ref_template="#/components/schemas/{model}")["$defs"])
+        # the drape and job routes read their DrapeRequest body themselves (service/parsing.py)
+        request_schema = DrapeRequest.model_json_schema(ref_template="#/components/schemas/{model}")
+        schemas.update(request_schema.pop("$defs"))
+        schemas["DrapeRequest"] = request_schema
         schemas["Problem"] = {k: v for k, v in Problem.model_json_schema(ref_template="#/components/schemas/{model}").items() if k != "$defs"}
         for name in ("HTTPValidationError", "ValidationError"):
             schemas.pop(name, None)

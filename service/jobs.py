@@ -202,7 +202,7 @@ class SqliteJobStore:
         return not self.degraded
 
     # ------------------------------------------------------------------ API side
-    def create(self, request: DrapeRequest, client: str = "anonymous") -> JobRecord:
+    def create(self, request: DrapeRequest, client: str = "anonymous", request_json: str | None = None) -> JobRecord:
         """Queue a job, within the quotas (``job_max_pending`` in all, ``job_max_pending_per_key``
         for ``client``), checked and inserted in one statement; 429 past either, 507 while the
         disk is full."""
@@ -215,7 +215,7 @@ class SqliteJobStore:
             "INSERT INTO jobs (id, state, request, format, created_at, updated_at, client) SELECT ?, 'queued', ?, ?, ?, ?, ? "
             "WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < ? "
             "AND (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running') AND client = ?) < ? RETURNING id",
-            (job_id, request.model_dump_json(), request.format, now, now, client, s.job_max_pending, client, s.job_max_pending_per_key))
+            (job_id, request_json or request.model_dump_json(), request.format, now, now, client, s.job_max_pending, client, s.job_max_pending_per_key))
         if not rows:
             raise quota_problem(self.pending(client), self.pending(), s).exception()
         return self.get(job_id)

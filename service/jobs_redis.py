@@ -130,7 +130,7 @@ class RedisJobStore:
             self.redis.zrem(key, *done)
         return len(ids) - len(done)
 
-    def create(self, request: DrapeRequest, client: str = "anonymous") -> JobRecord:
+    def create(self, request: DrapeRequest, client: str = "anonymous", request_json: str | None = None) -> JobRecord:
         """Queue a job within the quotas (429 past them). The check and the enqueue are two
         steps: concurrent API replicas may overshoot a quota by the requests in flight."""
         job_id = new_job_id()
@@ -142,7 +142,7 @@ class RedisJobStore:
         self.redis.zadd(key, {job_id: time.time()})
         self.redis.expire(key, int(s.job_timeout_s + s.job_result_ttl_s))
         self.queue.enqueue_call(
-            perform_job, args=(request.model_dump_json(), str(self.result_path(job_id, request.format))), job_id=job_id,
+            perform_job, args=(request_json or request.model_dump_json(), str(self.result_path(job_id, request.format))), job_id=job_id,
             timeout=int(s.job_timeout_s), result_ttl=int(s.job_result_ttl_s), failure_ttl=int(s.job_result_ttl_s),
             retry=Retry(max=max(s.job_max_attempts - 1, 0)) if s.job_max_attempts > 1 else None,
             meta={"format": request.format, "frames_done": 0, "frames_total": None, "created_at": time.time()},

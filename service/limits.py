@@ -12,9 +12,11 @@ class BodySizeLimit:
     """Answers 413 problem+json when a request body exceeds ``max_bytes``, declared
     (Content-Length) or streamed (chunked transfer).
 
-    The body is read here, up to the limit, and handed to the app in one message: a streamed
-    body that grows past the limit is refused before the app sees any of it (raising inside the
-    app's receive would reach FastAPI's body parser, which answers 400)."""
+    A declared length is checked before anything is read, and the app then reads the body itself
+    (so that it can refuse work before reading it). A streamed body, of unknown length, is read
+    here up to the limit and handed to the app in one message: one that grows past the limit is
+    refused before the app sees any of it (an error raised inside the app's receive would reach
+    the app's own error handling instead)."""
 
     def __init__(self, app, max_bytes: int, path_limits: dict[str, int] | None = None):
         self.app = app
@@ -26,8 +28,10 @@ class BodySizeLimit:
             return await self.app(scope, receive, send)
         max_bytes = self.path_limits.get(scope.get("path", ""), self.default_bytes)
         declared = dict(scope.get("headers") or []).get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > max_bytes):
-            return await self._reject(scope, send, max_bytes)
+        if declared is not None:  # the server delivers at most the declared length: the app reads it as it likes
+            if not declared.isdigit() or int(declared) > max_bytes:
+                return await self._reject(scope, send, max_bytes)
+            return await self.app(scope, receive, send)
         chunks, received = [], 0
         while True:
             message = await receive()

@@ -195,6 +195,7 @@ class WorkerPool:
         self._accepting = False
         self._batch_s = 1.0  # moving average of a batch's time, for Retry-After
         self._item_s = 0.0  # moving average of a drape's share of its batch's time, for admission
+        self._gf_s = 0.0  # moving average of the seconds per garment-frame of drape batches, for admit_cost
         self._busy_items = 0
         self._lock = threading.Lock()
         self.defaults: DefaultMethods | None = None  # each garment's default method, for the merge key (set by start)
@@ -260,8 +261,10 @@ class WorkerPool:
         waves = (len(self._pending) + self._busy) / max(len(self.workers) * self.settings.max_batch, 1)
         return max(1, math.ceil(waves * self._batch_s))
 
-    async def drape(self, request: DrapeRequest, timeout_s: float | None = None) -> DrapeOutput:
-        """Run a drape through the queue; 503 when the queue is full, 504 past the deadline."""
+    def admit(self) -> None:
+        """503 (with Retry-After) when a new drape would not be taken: shutting down, the queue
+        full, or the expected wait past ``max_queue_wait_s``. Cheap: the route calls it before
+        reading the request body."""
         if not self._accepting:
             self.metrics.rejected.labels("shutting_down").inc()
             raise ProblemException(503, "Shutting down", "the service is not accepting work; retry", headers={"Retry-After": "5"})
@@ -274,6 +277,27 @@ class WorkerPool:
             self.metrics.rejected.labels("queue_wait").inc()
             raise ProblemException(503, "Busy", f"the expected wait ({expected_wait_s:.1f} s) exceeds {self.settings.max_queue_wait_s:g} s; retry later",
                                    headers={"Retry-After": str(self._retry_after_s())})
+
+    def admit_cost(self, frames: int | None, garments: int) -> None:
+        """422 when the drape is estimated to outlast the request deadline: the expected wait plus
+        frames x garments x the measured seconds per garment-frame (audit D10). Such a request
+        belongs on POST /v1/jobs. No estimate before the first measured batch, or where the
+        frame count is only known after the motion is imported (BVH)."""
+        if frames is None or self._gf_s == 0:
+            return
+        work_s = frames * garments * self._gf_s
+        estimate_s = self.expected_wait_s() + work_s
+        if estimate_s > self.settings.request_timeout_s:
+            self.metrics.rejected.labels("too_long").inc()
+            raise ProblemException(422, "Too long for a synchronous drape",
+                                   f"{frames} frames x {garments} garment(s) at the measured {self._gf_s * 1e3:.0f} ms per garment-frame "
+                                   f"take about {work_s:.0f} s (plus {estimate_s - work_s:.0f} s of queue), past the {self.settings.request_timeout_s:g} s "
+                                   "deadline: use POST /v1/jobs, or shorten the motion, lower options.fps or drape fewer garments",
+                                   [{"pointer": "/motion", "detail": "too many frames for a synchronous drape; use POST /v1/jobs"}])
+
+    async def drape(self, request: DrapeRequest, timeout_s: float | None = None) -> DrapeOutput:
+        """Run a drape through the queue; 503 when the queue is full, 504 past the deadline."""
+        self.admit()
         loop = asyncio.get_running_loop()
         timeout_s = timeout_s or self.settings.request_timeout_s
         item = _Item("drape", (request,), loop.create_future(), loop.time() + timeout_s, key=merge_key(request, self.defaults), enqueued=loop.time())
@@ -369,8 +393,14 @@ class WorkerPool:
                 for item, outcome in zip(batch, outcomes):
                     self._observe(outcome)
                     _settle(item, outcome)
-                item_s = (time.perf_counter() - t0) / len(batch)
+                elapsed = time.perf_counter() - t0
+                item_s = elapsed / len(batch)
                 self._item_s = item_s if self._item_s == 0 else 0.8 * self._item_s + 0.2 * item_s
+                garment_frames = sum(int(o.headers.get("X-Frames", 0)) * len(it.payload[0].garments)
+                                     for it, o in zip(batch, outcomes) if isinstance(o, DrapeOutput))
+                if garment_frames:
+                    gf_s = elapsed / garment_frames
+                    self._gf_s = gf_s if self._gf_s == 0 else 0.8 * self._gf_s + 0.2 * gf_s
             else:
                 item = batch[0]
                 outcome = await asyncio.to_thread(worker.call, ("job",) + item.payload, item.on_progress)

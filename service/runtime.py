@@ -203,6 +203,23 @@ class Runtime:
         self._check_frames(len(rotations), fps, s)
         return PoseSequence(np.ascontiguousarray(rotations, np.float32), np.ascontiguousarray(translation, np.float32), fps)
 
+    def output_frames(self, request: DrapeRequest, limits: RequestLimits | None = None) -> int | None:
+        """The number of frames the request's drape will have, from the request alone (clip
+        metadata, pose count and rates); None for BVH, known only once parsed."""
+        m, fps = request.motion, request.options.fps
+        s = limits or RequestLimits.drape(self.settings)
+        if isinstance(m, ClipMotion):
+            if m.clip not in self.clips.ids():
+                return None
+            clip = self.clips.load(m.clip)
+            start = int(round(m.start_s * clip.fps))
+            stop = clip.num_frames if m.duration_s is None else min(clip.num_frames, start + int(round(m.duration_s * clip.fps)) + 1)
+            frames = resampled_frame_count(max(stop - start, 0), clip.fps, fps)
+            return frames if m.duration_s is not None else min(frames, s.max_frames)
+        if isinstance(m, PoseMotion):
+            return resampled_frame_count(len(m.rotations), m.fps, fps)
+        return None
+
     @staticmethod
     def _check_frames(frames: int, fps: float, limits: "RequestLimits", field: str = "/motion") -> None:
         """Refuse a motion whose output frame count (counted before any resampling or

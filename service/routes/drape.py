@@ -1,12 +1,13 @@
 """POST /v1/drape: synchronous drape of garments on a body following a motion."""
 from __future__ import annotations
 
-from fastapi import APIRouter, Body, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import Response
 
-from service.cache import etag_matches, etag_of, request_key, wildcard
+from service.cache import etag_matches, etag_of, wildcard
 from service.errors import ProblemException
-from service.schemas import DRAPE_EXAMPLE, DrapeRequest
+from service.parsing import KeyContext, request_body_openapi
+from service.schemas import DRAPE_EXAMPLE
 
 router = APIRouter(prefix="/v1", tags=["drape"])
 
@@ -17,6 +18,7 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
 @router.post(
     "/drape",
     response_class=Response,
+    openapi_extra=request_body_openapi(DRAPE_EXAMPLE),
     responses={
         200: {
             "description": "the animated garments (and body): glb (Y-up, metres, morph-target animation) or npz (float32 arrays, Z-up). "
@@ -30,23 +32,30 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
         412: {"description": "If-None-Match: * (a drape always has a representation)", **_PROBLEM},
         413: {"description": "request body too large", **_PROBLEM},
         415: {"description": "the body is not application/json", **_PROBLEM},
-        422: {"description": "invalid request: the problem names the field", **_PROBLEM},
-        503: {"description": "busy (queue full) or shutting down: retry after the Retry-After seconds", **_PROBLEM},
+        422: {"description": "invalid request: the problem names the field; also a request estimated to take longer "
+                             "than the request deadline (use POST /v1/jobs)", **_PROBLEM},
+        503: {"description": "busy (queue full, checked before the body is read) or shutting down: retry after the "
+                             "Retry-After seconds", **_PROBLEM},
         504: {"description": "the drape did not finish within the request deadline", **_PROBLEM},
     },
 )
-async def post_drape(
-    request: Request,
-    drape_request: DrapeRequest = Body(openapi_examples={"walk_tshirt": {"summary": "neutral body, walk clip, T-shirt", "value": DRAPE_EXAMPLE}}),
-) -> Response:
+async def post_drape(request: Request) -> Response:
+    """The body is a ``DrapeRequest`` (see the schema). Admission happens before the body is
+    read (503 when the queue is full) and again once it is validated (422 when the drape is
+    estimated to outlast the deadline); large bodies are validated off the event loop."""
     state = request.app.state
-    key = request_key(drape_request, request.app.version, state.runtime.defaults, state.runtime.assets.combined)
+    state.pool.admit()
+    runtime = state.runtime
+    drape_request, key = await state.parser.parse(request, KeyContext(request.app.version, runtime.defaults, runtime.assets.combined))
     etag = etag_of(key)
     if wildcard(request.headers.get("if-none-match")):
         raise ProblemException(412, "Precondition failed", "If-None-Match: * cannot hold: every valid drape request has a result")
     if etag_matches(request.headers.get("if-none-match"), key):
         state.metrics.cache.labels("not_modified").inc()
         return Response(status_code=304, headers={"ETag": etag})
+    if state.cache.get(key) is None:
+        runtime.check_request(drape_request)  # the cheap 422s first (unknown ids, the frame limit), then the cost
+        state.pool.admit_cost(runtime.output_frames(drape_request), len(drape_request.garments))
     result, how = await state.cache.get_or_compute(key, lambda: state.pool.drape(drape_request))
     state.metrics.cache.labels(how).inc()
     headers = {**result.headers, "ETag": etag, "X-Cache": how}

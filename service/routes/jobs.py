@@ -1,13 +1,14 @@
 """Asynchronous drapes: POST /v1/jobs (202 + Location), GET status/progress, GET result, DELETE."""
 from __future__ import annotations
 
-from fastapi import APIRouter, Body, Path, Request
+from fastapi import APIRouter, Path, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from service.auth import client_id
 from service.errors import ProblemException
 from service.jobs import MEDIA_TYPES, JobRecord
-from service.schemas import DRAPE_EXAMPLE, DrapeRequest, JobProgress, JobResponse
+from service.parsing import request_body_openapi
+from service.schemas import DRAPE_EXAMPLE, JobProgress, JobResponse
 from service.runtime import RequestLimits
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -45,6 +46,7 @@ def _get(request: Request, job_id: str) -> JobRecord:
     "",
     status_code=202,
     response_model=JobResponse,
+    openapi_extra=request_body_openapi(DRAPE_EXAMPLE),
     responses={
         202: {"description": "accepted: poll the Location", "headers": {"Location": {"schema": {"type": "string"}, "description": "the job's URL"}}},
         400: {"description": "the body is not parseable JSON", **_PROBLEM},
@@ -56,17 +58,15 @@ def _get(request: Request, job_id: str) -> JobRecord:
         507: {"description": "the job store's disk is full: retry after the Retry-After seconds", **_PROBLEM},
     },
 )
-async def post_job(
-    request: Request,
-    drape_request: DrapeRequest = Body(openapi_examples={"walk_tshirt": {"summary": "neutral body, walk clip, T-shirt", "value": DRAPE_EXAMPLE}}),
-):
-    """The body of POST /v1/drape, with the job limits (frames, vertices, request size); the
-    result is kept for the configured time."""
+async def post_job(request: Request):
+    """The body of POST /v1/drape (a ``DrapeRequest``), with the job limits (frames, vertices,
+    request size); the result is kept for the configured time."""
     store = _store(request)
+    drape_request, request_json = await request.app.state.parser.parse(request)
     request.app.state.runtime.check_request(drape_request, RequestLimits.job(request.app.state.runtime.settings))
     try:
         client = client_id(request.headers, request.app.state.settings.api_key_header) if request.app.state.auth_on else "anonymous"
-        record = store.create(drape_request, client)
+        record = store.create(drape_request, client, request_json)
     except ProblemException:
         raise
     except Exception as exc:  # noqa: BLE001 - the queue (Redis, disk) is unavailable: nothing was accepted
