@@ -100,7 +100,9 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
                 state.job_store.close()
             log.info("stopped")
 
-    app = FastAPI(title="Try-on service", version=API_VERSION, description=description(settings), lifespan=lifespan)
+    app = FastAPI(title="Try-on service", version=API_VERSION, description=description(settings), lifespan=lifespan,
+                  docs_url=None, redoc_url=None)
+    install_docs(app)
     app.state.settings = settings
     app.state.runtime = runtime
     app.state.metrics = Metrics()
@@ -128,6 +130,26 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
         app.include_router(module.router, responses=COMMON_ERRORS)
     app.openapi = lambda: problem_openapi(app)
     return app
+
+
+DOCS_ASSETS = "/docs/assets"
+
+
+def install_docs(app: FastAPI) -> None:
+    """Swagger UI at ``/docs`` from the files of the ``swagger-ui-bundle`` package, served here:
+    FastAPI's default loads them from a public CDN, so the page is blank on an offline or
+    locked-down host."""
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.staticfiles import StaticFiles
+    from swagger_ui_bundle import swagger_ui_path
+
+    app.mount(DOCS_ASSETS, StaticFiles(directory=str(swagger_ui_path)), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        return get_swagger_ui_html(openapi_url="/openapi.json", title=f"{app.title} - API docs",
+                                   swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js", swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+                                   swagger_favicon_url=f"{DOCS_ASSETS}/favicon-32x32.png")
 
 
 async def _sweep(store) -> None:

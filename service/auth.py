@@ -10,7 +10,8 @@ import hmac
 from service.errors import problem_response
 
 # Paths open without a key: probes, metrics (scraped inside the cluster), the contract and docs.
-PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"})
+PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs"})
+PUBLIC_PREFIXES = ("/docs/assets/",)  # Swagger UI's own files (service/app.py)
 
 
 def key_matches(candidate: str, keys: list[bytes]) -> bool:
@@ -40,7 +41,8 @@ class ApiKeyAuth:
         self.header_name = header
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or scope["path"] in PUBLIC_PATHS or scope["method"] == "OPTIONS":
+        path = scope.get("path", "")
+        if scope["type"] != "http" or path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES) or scope["method"] == "OPTIONS":
             return await self.app(scope, receive, send)
         value = dict(scope.get("headers") or []).get(self.header)
         if value is None:

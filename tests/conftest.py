@@ -1,6 +1,7 @@
 """Shared fixtures: one loaded runtime and app per test session (assets load once)."""
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -8,6 +9,10 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+# anny's and warp's caches under build/ (ignored by git), not ~/.cache, also for the README's
+# plain `pytest` command: set before any test module imports anny or warp.
+os.environ.setdefault("ANNY_CACHE_DIR", str(REPO_ROOT / "build" / "anny_cache"))
+os.environ.setdefault("WARP_CACHE_PATH", str(REPO_ROOT / "build" / "warp_cache"))
 VALIDATOR = REPO_ROOT / "tools" / "validate_gltf.mjs"
 
 

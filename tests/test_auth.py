@@ -34,7 +34,7 @@ def test_missing_key_is_401_wrong_key_is_403(auth_client):
 
 
 def test_probes_and_metrics_stay_open(auth_client):
-    for path in ("/healthz", "/readyz", "/metrics", "/openapi.json"):
+    for path in ("/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/docs/assets/swagger-ui.css"):
         assert auth_client.get(path).status_code == 200, path
 
 

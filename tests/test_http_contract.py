@@ -96,3 +96,12 @@ def test_if_none_match_star_on_post_is_412_after_validation(client):
     first = client.post("/v1/drape", json=CLIP)
     assert first.status_code == 200
     assert client.post("/v1/drape", json=CLIP, headers={"if-none-match": first.headers["etag"]}).status_code == 304
+
+
+def test_docs_are_served_without_a_cdn(client):
+    page = client.get("/docs")
+    assert page.status_code == 200 and "/docs/assets/swagger-ui-bundle.js" in page.text
+    assert "cdn" not in page.text.lower() and "http://" not in page.text and "https://" not in page.text.replace("https://swagger.io", "")
+    for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
+        r = client.get(f"/docs/assets/{asset}")
+        assert r.status_code == 200 and len(r.content) > 10_000
