@@ -1,0 +1,51 @@
+"""Two garments through the whole pipeline (T-shirt under jacket, dance clip, heaviest adult):
+no vertex of either layer inside the body, the exact repair puts what it moves at its own
+layer's margin (the body margin plus one layer gap per layer below), and it moves no vertex
+farther than a bound."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from inference.metrics import inside_mask, signed_distance
+from inference.motion.clips import adapt_clip
+from inference.pipeline import DrapeOptions, PoseSequence, drape
+
+HEAVY = np.ones((1, 6), np.float32)
+REPAIR_MOVE_BOUND_M = 0.08  # measured at most 6.0 cm here (the arms' creases); a jump beyond is a broken repair
+
+
+@pytest.fixture(scope="module")
+def layered(runtime):
+    body, catalog = runtime.body, runtime.catalog
+    shape = body.shape(HEAVY)
+    rotations, translation = adapt_clip(runtime.clips.load("dance"), body, shape)
+    motion = PoseSequence(np.ascontiguousarray(rotations[0, ::15]), np.ascontiguousarray(translation[0, ::15]), 2.0)  # 21 frames
+    assets = [catalog.get("tshirt"), catalog.get("jacket")]
+    options = DrapeOptions(fit="retarget", dynamics="none")
+    full = drape(body, shape, motion, assets, options, neutral=runtime.neutral_shape)
+    unrepaired = drape(body, shape, motion, assets, replace(options, guard_exact=False), neutral=runtime.neutral_shape)
+    return runtime.body, full, unrepaired, options
+
+
+def test_no_layer_is_inside_the_body(layered):
+    body, full, _, _ = layered
+    assert [g.asset.id for g in full.garments] == ["tshirt", "jacket"]
+    for g in full.garments:
+        assert not inside_mask(g.vertices, full.body_vertices, body.faces).any(), g.asset.id
+
+
+def test_the_repair_uses_each_layers_margin_and_moves_within_the_bound(layered):
+    body, full, unrepaired, options = layered
+    for layer, (g, before) in enumerate(zip(full.garments, unrepaired.garments)):
+        moved = np.linalg.norm(g.vertices - before.vertices, axis=-1)  # (T, V)
+        assert moved.max() <= REPAIR_MOVE_BOUND_M, (g.asset.id, float(moved.max()))
+        frames, vertices = np.nonzero(moved > 1e-6)
+        assert len(frames) > 50, g.asset.id  # the repair has work here: arms in the heavy torso
+        sd = np.concatenate([signed_distance(g.vertices[t][None], full.body_vertices[t][None], body.faces)[0][vertices[frames == t]]
+                             for t in np.unique(frames)])
+        margin = options.margin_m + layer * options.layer_gap_m
+        # targets are skin vertices offset by the margin along their normals: at most the margin from the surface
+        assert margin - 1e-3 <= np.median(sd) <= margin + 5e-4, (g.asset.id, float(np.median(sd)), margin)
