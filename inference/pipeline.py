@@ -20,8 +20,8 @@ Units: metres, seconds, radians; Z-up world axes (the glb writer converts to Y-u
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -111,6 +111,7 @@ class DrapeResult:
     body_vertices: np.ndarray | None  # (T, Vb, 3) posed body when computed
     fps: float
     timings_ms: dict[str, float] = field(default_factory=dict)
+    wrinkle_state: list[np.ndarray | None] = field(default_factory=list)  # per garment: the GRU state after the last frame (learned dynamics)
 
 
 class _Timer:
@@ -152,25 +153,34 @@ def fit_garment(garment: GarmentAsset, hm08_vertices: np.ndarray, mode: FitMode,
 
 def garment_dynamics(unposed: np.ndarray, num_frames: int, mode: DynamicsMode = "none", phenotypes: np.ndarray | None = None,
                      gamma: np.ndarray | None = None, learned: LearnedGarment | None = None,
-                     segments: Sequence[int] | None = None) -> np.ndarray:
+                     segments: Sequence[int] | None = None, h0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """Per-frame unposed garment T_c(beta, gamma_1..t) = fit + R_L(beta, gamma_1..t) (eq. 4.2).
 
     unposed    : (B, V, 3) the fitted garment
     phenotypes : (B, 6) ; gamma : (B, T, F) motion descriptor ; learned : the garment's models
-                 ('learned' only: the whole sequence in one ORT call, the GRU starting from h0 = 0)
+                 ('learned' only: each segment in one ORT call)
     segments   : frame counts of independent motions concatenated along T (cross-request
                  batching): the GRU restarts from h0 = 0 at each one's first frame
-    returns    : (B, T, V, 3) float32 metres ('none': the fit repeated, a broadcast view)
+    h0         : (L, B, H) the GRU state at the first frame, carried from the previous chunk of
+                 the same motion (one segment only); None: zeros, the start of a motion
+    returns    : (B, T, V, 3) float32 metres ('none': the fit repeated, a broadcast view), and
+                 the GRU state after the last frame ('learned'; None otherwise)
     """
     if mode == "learned":
         if learned is None or phenotypes is None or gamma is None:
             raise ValueError("dynamics 'learned' needs the garment's LearnedGarment, the phenotypes and gamma")
         if gamma.shape[:2] != (unposed.shape[0], num_frames):
             raise InputShapeError("gamma", f"({unposed.shape[0]}, {num_frames}, F)", gamma.shape)
-        bounds = np.cumsum([0, *(segments or [num_frames])])
-        delta = np.concatenate([learned.wrinkles(phenotypes, gamma[:, a:b])[0] for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
-        return unposed[:, None] + delta
-    return np.broadcast_to(unposed[:, None], (unposed.shape[0], num_frames) + unposed.shape[1:])
+        segments = list(segments or [num_frames])
+        if h0 is not None and len(segments) != 1:
+            raise InputShapeError("segments", "one segment when a GRU state is carried in", tuple(segments))
+        bounds = np.cumsum([0, *segments])
+        parts, h_t = [], None
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            delta, h_t = learned.wrinkles(phenotypes, gamma[:, a:b], h0)
+            parts.append(delta)
+        return unposed[:, None] + np.concatenate(parts, axis=1), h_t
+    return np.broadcast_to(unposed[:, None], (unposed.shape[0], num_frames) + unposed.shape[1:]), None
 
 
 def neutral_relative_transforms(transforms: np.ndarray, shape: BodyShape, neutral: BodyShape) -> np.ndarray:
@@ -193,6 +203,8 @@ def drape(
     models: LearnedModels | None = None,
     segments: Sequence[int] | None = None,
     defaults: DefaultMethods | None = None,
+    gamma: np.ndarray | None = None,
+    wrinkle_state: Sequence[np.ndarray | None] | None = None,
 ) -> DrapeResult:
     """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
     (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none');
@@ -200,7 +212,11 @@ def drape(
     ``segments``: frame counts of independent motions concatenated in ``motion`` (cross-request
     batching; default one motion): the motion descriptor and the wrinkle GRU restart at each;
     ``defaults``: each garment's default method, used where ``options.fit`` / ``options.dynamics``
-    is None (default: ``inference.defaults.default_methods()``, the shipped table)."""
+    is None (default: ``inference.defaults.default_methods()``, the shipped table);
+    ``gamma`` (1, T, F): the motion descriptor of these frames when they are a chunk of a longer
+    motion (computed over the whole motion: its finite differences reach across the chunk's
+    ends), and ``wrinkle_state`` each garment's GRU state after the previous chunk
+    (``DrapeResult.wrinkle_state``; see ``drape_chunks``)."""
     timer = _Timer()
     if shape.rest_vertices.shape[0] != 1:
         raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
@@ -233,24 +249,28 @@ def drape(
         garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
 
     learned: list[LearnedGarment | None] = [None] * len(garments)
-    gamma = None
     if any(m.fit == "learned" or m.dynamics == "learned" for m in methods):
         models = models or default_models()
         with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
             learned = [models.get(g.id, "/options/fit" if m.fit == "learned" else "/options/dynamics")
                        if "learned" in (m.fit, m.dynamics) else None for g, m in zip(garments, methods)]
-    if any(m.dynamics == "learned" for m in methods):
+    if gamma is not None:
+        if gamma.shape[:2] != (1, motion.num_frames):
+            raise InputShapeError("gamma", f"(1, {motion.num_frames}, F)", gamma.shape)
+    elif any(m.dynamics == "learned" for m in methods):
         with timer("descriptor"):  # per segment: finite differences never straddle two motions
             bounds = np.cumsum([0, *segments])
             gamma = np.concatenate([motion_descriptor(motion.rotations[None, a:b], motion.translation[None, a:b], motion.fps)
                                     for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
 
-    unposed_fits, posed = [], []
-    for g, m, lg in zip(garments, methods, learned):
+    unposed_fits, posed, states = [], [], []
+    for i, (g, m, lg) in enumerate(zip(garments, methods, learned)):
         with timer("fit"):
             unposed = fit_garment(g, hm08, m.fit, shape.phenotypes, lg)
         with timer("dynamics"):
-            unposed_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments)
+            h0 = wrinkle_state[i] if wrinkle_state is not None else None
+            unposed_t, h_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments, h0)
+            states.append(h_t)
         with timer("skin"):
             posed.append(linear_blend_skinning(unposed_t, g.skin_weights, garment_transforms))
         unposed_fits.append(unposed)
@@ -276,4 +296,41 @@ def drape(
         body_vertices=None if body_vertices is None else body_vertices[0],
         fps=motion.fps,
         timings_ms=timer.ms,
+        wrinkle_state=states,
     )
+
+
+def drape_chunks(
+    body: BodyModel,
+    shape: BodyShape,
+    motion: PoseSequence,
+    garments: list[GarmentAsset],
+    options: DrapeOptions = DrapeOptions(),
+    chunk_frames: int = 120,
+    neutral: BodyShape | None = None,
+    models: LearnedModels | None = None,
+    defaults: DefaultMethods | None = None,
+) -> Iterator[tuple[int, DrapeResult]]:
+    """``drape`` of one motion in chunks of ``chunk_frames`` frames, each yielded when done as
+    (frames done so far, the chunk's result); concatenated, the chunks equal the drape of the
+    whole motion (to float rounding). What reaches across frames is computed once over the whole
+    motion: the arm lift (it smooths over neighbouring frames) and the motion descriptor (finite
+    differences); each garment's wrinkle GRU carries its state from one chunk to the next.
+    Every other stage is per frame."""
+    if chunk_frames < 1:
+        raise InputShapeError("chunk_frames", ">= 1", (chunk_frames,))
+    methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults)
+    if options.lift_arms:
+        lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation)
+        motion, options = PoseSequence(lifted, motion.translation, motion.fps), replace(options, lift_arms=False)
+    gamma = None
+    if any(m.dynamics == "learned" for m in methods):
+        gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)
+    state: list[np.ndarray | None] | None = None
+    for a in range(0, motion.num_frames, chunk_frames):
+        b = min(a + chunk_frames, motion.num_frames)
+        part = PoseSequence(motion.rotations[a:b], motion.translation[a:b], motion.fps)
+        result = drape(body, shape, part, garments, options, neutral=neutral, models=models, defaults=defaults,
+                       gamma=None if gamma is None else gamma[:, a:b], wrinkle_state=state)
+        state = result.wrinkle_state
+        yield b, result

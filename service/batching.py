@@ -21,8 +21,6 @@ from inference.defaults import DefaultMethods, Method, resolve_methods
 from inference.pipeline import DrapedGarment, DrapeResult, PoseSequence
 from service.schemas import DrapeRequest
 
-# dynamics modes whose stages are all per frame (a job may run them in chunks of frames)
-PER_FRAME_DYNAMICS = frozenset({"none"})
 # dynamics modes that can run on concatenated motions (the GRU restarts per segment)
 MERGEABLE_DYNAMICS = frozenset({"none", "learned"})
 
@@ -36,11 +34,6 @@ def request_methods(request: DrapeRequest, defaults: DefaultMethods) -> list[Met
     if (o.fit is None or o.dynamics is None) and not all(i in defaults for i in ids):
         return None
     return resolve_methods(ids, o.fit, o.dynamics, defaults)
-
-
-def per_frame(methods: list[Method]) -> bool:
-    """Whether every garment's stages are per frame (a job may run in chunks of frames)."""
-    return all(m.dynamics in PER_FRAME_DYNAMICS for m in methods)
 
 
 def merge_key(request: DrapeRequest, defaults: DefaultMethods) -> tuple | None:

@@ -14,7 +14,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -30,9 +30,8 @@ from inference.motion.bvh import parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion, resampled_frame_count
 from inference.motion.retarget import retarget
-from inference.motion.self_contact import lift_arms
-from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape
-from service.batching import concatenate_results, merge_key, merge_motions, per_frame, split_result
+from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape, drape_chunks
+from service.batching import concatenate_results, merge_key, merge_motions, split_result
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import BvhMotion, ClipMotion, DrapeRequest, PoseMotion
@@ -368,28 +367,22 @@ class Runtime:
         return outcomes  # type: ignore[return-value]
 
     def run_job(self, request: DrapeRequest, progress: Callable[[int, int], bool] | None = None) -> DrapeOutput | None:
-        """A long request in chunks of ``job_chunk_frames`` frames; ``progress(done, total)`` is
-        called after each chunk and returns True to cancel (then the result is None)."""
+        """A long request in chunks of ``job_chunk_frames`` frames (``inference.pipeline.drape_chunks``:
+        the arm lift and the motion descriptor over the whole motion, the wrinkle GRU's state
+        carried across chunks, so the result is the unchunked drape's); ``progress(done, total)``
+        is called before the first chunk and after each, and returns True to cancel (then the
+        result is None)."""
         p = self.prepare(request, RequestLimits.job(self.settings))
         total = p.motion.num_frames
-        # chunks only where every garment's stages are per frame: a stateful dynamics model runs in one call
-        chunk = self.settings.job_chunk_frames if per_frame(p.methods) else total
-        if chunk < total and p.options.lift_arms:
-            # the arm correction smooths over neighbouring frames: run it once on the whole motion
-            lifted, _ = lift_arms(self.body, p.shape, p.motion.rotations, p.motion.translation)
-            p = replace(p, motion=PoseSequence(lifted, p.motion.translation, p.motion.fps), options=replace(p.options, lift_arms=False))
         if progress is not None and progress(0, total):
             return None
         parts = []
-        for start in range(0, total, chunk):
-            m = p.motion
-            part = PreparedDrape(p.request, p.shape, PoseSequence(m.rotations[start:start + chunk], m.translation[start:start + chunk], m.fps),
-                                 p.assets, p.options, p.methods, p.t0)
-            parts.append((part, self.drape_batch([part])[0]))
-            if progress is not None and progress(min(start + chunk, total), total):
+        for done, part in drape_chunks(self.body, p.shape, p.motion, p.assets, p.options, self.settings.job_chunk_frames,
+                                       neutral=self.neutral_shape, models=self.models, defaults=self.defaults):
+            parts.append(part)
+            if progress is not None and progress(done, total):
                 return None
-        merged = concatenate_results([r for _, r in parts], p.motion.fps)
-        return self.export(p, merged)
+        return self.export(p, concatenate_results(parts, p.motion.fps))
 
 
 def _problem(exc: BaseException) -> ProblemDetail:

@@ -24,7 +24,7 @@ def job_body(frames=40, clip="dance", fmt="npz", **options):
 
 def make_settings(tmp_path, **kw) -> Settings:
     return Settings().model_copy(update={"worker_mode": "thread", "workers": 1, "jobs_dir": tmp_path / "jobs", "job_poll_s": 0.05,
-                                         "job_chunk_frames": 50, "job_lease_s": 1.0, **kw})
+                                         "job_chunk_frames": 50, "job_lease_s": 1.0, "shutdown_drain_s": 1.0, **kw})
 
 
 @pytest.fixture
@@ -137,27 +137,35 @@ def test_a_job_that_keeps_losing_its_owner_fails_after_max_attempts(tmp_path):
     assert store.counts()["failed"] == 1
 
 
-def test_a_job_chunks_only_where_every_garments_resolved_dynamics_is_per_frame(tmp_path, runtime):
-    """Chunking follows each garment's method as run (options, else its default), not the raw
-    options: a default-learned garment beside a default-static one runs in one call."""
-    from inference.defaults import DefaultMethod, DefaultMethods
+def test_a_chunked_learned_dynamics_job_reports_progress_and_equals_the_whole_drape(tmp_path, runtime):
+    """Every job runs in chunks, learned dynamics included (the GRU's state carried across
+    chunks, the descriptor and the arm lift over the whole motion): progress after each chunk,
+    and the result is the unchunked drape's to 1e-5 m, guard and repair included.
+
+    One garment: the chunked GRU agrees with the whole-sequence one to ~2e-7 m (ORT sums in
+    another order), and the layer-on-layer guard turns such differences into centimetres (1e-7
+    of noise moves ~100 vertex-frames of a T-shirt over trousers by > 1 mm, the worst 2.4 cm:
+    a discontinuity of the layer push, noted for the layering work), so a layered comparison
+    would test the guard's sensitivity, not the chunking."""
     from service.runtime import Runtime
 
-    entry = {"reason": "test", "evidence": "tests/test_jobs.py"}
-    table = {g: DefaultMethod("retarget", "none", **entry) for g in runtime.catalog.ids()}
-    table["trousers"] = DefaultMethod("learned", "learned", **entry)
-    rt = Runtime(make_settings(tmp_path, job_chunk_frames=4), runtime.body, runtime.catalog, runtime.clips, DefaultMethods(table))
-
-    def chunks(garments, **options):
-        calls = []
-        request = DrapeRequest.model_validate({**job_body(10, clip="walk", **options), "garments": [{"id": g} for g in garments]})
-        assert rt.run_job(request, lambda done, total: calls.append(done) or False) is not None
-        return calls
-
-    assert chunks(["tshirt"]) == [0, 4, 8, 10]  # static by default: chunks of 4 frames
-    assert chunks(["tshirt", "trousers"]) == [0, 10]  # the trousers' GRU: one call
-    assert chunks(["tshirt", "trousers"], dynamics="none") == [0, 4, 8, 10]  # named for all: static
-    assert chunks(["tshirt"], dynamics="learned") == [0, 10]
+    rt = Runtime(make_settings(tmp_path, job_chunk_frames=7), runtime.body, runtime.catalog, runtime.clips, runtime.defaults,
+                 runtime.models, runtime.assets)
+    body = job_body(30, clip="walk", fit="learned", dynamics="learned", guard=True)
+    request = DrapeRequest.model_validate(body)
+    calls = []
+    out = rt.run_job(request, lambda done, total: calls.append((done, total)) or False)
+    assert calls == [(0, 30), (7, 30), (14, 30), (21, 30), (28, 30), (30, 30)]
+    whole = rt.run_drape(request.model_copy(update={"options": request.options.model_copy(update={"fps": 30.0})}))
+    chunked_arrays, whole_arrays = (np.load(io.BytesIO(o.payload), allow_pickle=False) for o in (out, whole))
+    a, b = chunked_arrays["garment_0_vertices"], whole_arrays["garment_0_vertices"]
+    assert a.shape == b.shape == (30, a.shape[1], 3)
+    np.testing.assert_allclose(a, b, atol=1e-5, rtol=0)
+    # the GRU's state matters: restarting it at every chunk gives another result
+    restarted = [rt.run_drape(DrapeRequest.model_validate({**body, "motion": {"type": "clip", "clip": "walk", "start_s": s / 30.0,
+                                                                              "duration_s": 6 / 30.0}})) for s in (0, 7)]
+    second = np.load(io.BytesIO(restarted[1].payload), allow_pickle=False)["garment_0_vertices"]
+    assert np.abs(second[0] - chunked_arrays["garment_0_vertices"][7]).max() > 1e-4
 
 
 def test_job_quotas_per_key_and_in_all_answer_429(tmp_path, runtime):
