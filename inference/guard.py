@@ -58,8 +58,8 @@ vertices left inside after the guard; what remains lies mostly in the body's own
 overlaps, where no local push can be right.
 
 Layers (``guard_layers``): garments in layer order, innermost first; layer i is pushed out of
-the body with margin ``body_margin_m + i * layer_margin_m`` and then out of every inner garment
-j < i (already guarded) with margin ``layer_margin_m``, along the inner garment's outward
+the body with margin ``body_margin_m + i * layer_gap_m`` and then out of every inner garment
+j < i (already guarded) with margin ``layer_gap_m``, along the inner garment's outward
 vertex normals. Open collider meshes (garments) have borders: a vertex whose closest collider
 vertex lies on the border and which lies beyond it (tangential offset > the collider's median
 edge length) is not pushed (it does not project onto the collider surface).
@@ -81,8 +81,8 @@ from inference.triangles import closest_barycentrics
 
 # Default clearance between the body and the innermost garment (DESIGN.md §3: 2–4 mm).
 DEFAULT_MARGIN_M = 0.002
-# Default clearance between consecutive garment layers.
-DEFAULT_LAYER_MARGIN_M = 0.002
+# Default clearance between consecutive garment layers (the pipeline's and the API's default too).
+DEFAULT_LAYER_GAP_M = 0.003
 # Candidates per garment vertex: the posed closest body vertex is among the 8 rest-pose
 # nearest ones for ~96-99 % of vertices on random poses (0.3 rad per bone, measured).
 DEFAULT_CANDIDATES = 8
@@ -821,13 +821,13 @@ def guard_layers(
     body: np.ndarray,
     plans: LayerPlans,
     body_margin_m: float = DEFAULT_MARGIN_M,
-    layer_margin_m: float = DEFAULT_LAYER_MARGIN_M,
+    layer_gap_m: float = DEFAULT_LAYER_GAP_M,
     check: bool = True,
 ) -> list[np.ndarray]:
     """Guard a stack of garments, innermost first (see the module docstring).
 
-    layer i: p_i <- guard(p_i, body, margin = body_margin_m + i * layer_margin_m)
-             p_i <- guard(p_i, p_j, margin = layer_margin_m) for j = 0 .. i-1 (guarded p_j)
+    layer i: p_i <- guard(p_i, body, margin = body_margin_m + i * layer_gap_m)
+             p_i <- guard(p_i, p_j, margin = layer_gap_m) for j = 0 .. i-1 (guarded p_j)
     layers : each (B, T, N_i, 3) float32, metres ; body : (B, T, Vb, 3) float32, metres
     check  : the closest-triangle check against the body (module docstring; 3-4 ms per
              garment-frame for 5k vertices)
@@ -837,8 +837,8 @@ def guard_layers(
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
-        p = guard(p, body, plans.body[i], body_margin_m + i * layer_margin_m, iterations=GUARD_ITERATIONS, check=check)
+        p = guard(p, body, plans.body[i], body_margin_m + i * layer_gap_m, iterations=GUARD_ITERATIONS, check=check)
         for j in range(i):
-            p = guard(p, out[j], plans.inner[i][j], layer_margin_m)
+            p = guard(p, out[j], plans.inner[i][j], layer_gap_m)
         out.append(p)
     return out

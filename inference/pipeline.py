@@ -29,7 +29,7 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blen
 from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, resolve_methods
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
-from inference.guard import LayerPlans, guard_layers
+from inference.guard import DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M, LayerPlans, guard_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -57,8 +57,8 @@ class DrapeOptions:
     fit: FitMode | None = None
     dynamics: DynamicsMode | None = None
     guard: bool = True
-    margin_m: float = 0.002
-    layer_gap_m: float = 0.003
+    margin_m: float = DEFAULT_MARGIN_M
+    layer_gap_m: float = DEFAULT_LAYER_GAP_M
     include_body: bool = True
     lift_arms: bool = True
     guard_check: bool = True

@@ -7,6 +7,7 @@ from annotated_types import Len
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 
 from inference.body import PHENOTYPE_RANGES
+from inference.guard import DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M
 
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 NUM_BONES = 31
@@ -90,9 +91,10 @@ class DrapeOptions(_Strict):
         "descriptor (eq. 6.17); 'none' = static fit. Null or omitted (default): each garment's own default dynamics "
         "(GET /v1/garments/{id}, default_method)",
     )
-    guard: bool = Field(True, description="push garment vertices out of the body after skinning")
-    margin_m: float = Field(0.002, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")
-    layer_gap_m: float = Field(0.003, ge=0.0, le=0.02, allow_inf_nan=False, description="extra margin per garment layer, metres")
+    guard: bool = Field(True, description="push garment vertices out of the body after skinning; false: no collision "
+                                          "handling at all (guard_check and guard_exact apply only with the guard)")
+    margin_m: float = Field(DEFAULT_MARGIN_M, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")
+    layer_gap_m: float = Field(DEFAULT_LAYER_GAP_M, ge=0.0, le=0.02, allow_inf_nan=False, description="extra margin per garment layer, metres")
     lift_arms: bool = Field(
         True,
         description="abduct the upper arms about the shoulder, per frame, where the body shape sinks them into the torso "
