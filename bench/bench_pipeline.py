@@ -49,9 +49,8 @@ def stage_table(runtime: Runtime, repeats: int, mode: str) -> list[str]:
     for garments in (("tshirt",), ("tshirt", "jacket")):
         for frames in (1, 300):
             req = DrapeRequest.model_validate(request(frames, "npz", garments, mode=mode))
-            shape = runtime.body.shape(runtime._phenotypes(req)[None])
-            motion = runtime._motion(req, shape)
-            assets = [runtime.catalog.get(g) for g in garments]
+            prepared = runtime.prepare(req)
+            shape, motion, assets = prepared.shape, prepared.motion, prepared.assets
             runs = []
             for _ in range(repeats):
                 t0 = time.perf_counter()

@@ -1,46 +1,38 @@
 """What the service holds in memory (body model, garment catalog and each garment's default
-method, clips) and the drape work.
+method, clips, learned models) and the drape work, by way of the inference entry points.
 
-Requests are turned into pipeline inputs here (motion import, retargeting, resampling, frame and
-vertex limits), run through the pipeline (several compatible requests merged into one call, see
-``drape_batch``), and encoded as glb or npz. This runs inside the worker pool (service/pool.py),
-never on the event loop.
+A request is translated into inference inputs here (``inference.motion.importer``: the motion on
+the body within the frame limits; the garments, options and methods), run by
+``inference.batch.drape_many`` (compatible requests merged into one pipeline call) or, for a
+job, ``inference.pipeline.drape_chunks``, and encoded as glb or npz. No array maths here. This
+runs inside the worker pool (service/pool.py), never on the event loop.
 """
 from __future__ import annotations
 
 import json
 import logging
-import threading
 import time
-from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
-
 from inference.asset_digest import AssetDigest
+from inference.batch import DrapeJob, concatenate_results, drape_many
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
 from inference.defaults import DEFAULTS_FILE, DefaultMethods, Method, resolve_methods
 from inference.errors import InputValueError
 from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
 from inference.garment import GarmentAsset, GarmentCatalog
 from inference.learned import LearnedModels
-from inference.motion.bvh import parse_bvh
-from inference.motion.clips import ClipLibrary, adapt_clip
-from inference.motion.resample import resample_motion, resampled_frame_count
-from inference.motion.retarget import retarget
-from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape, drape_chunks
-from service.batching import concatenate_results, merge_key, merge_motions, split_result
+from inference.motion.clips import ClipLibrary
+from inference.motion.importer import BvhSpec, ClipSpec, MotionImporter, MotionLimits, MotionSpec, PosesSpec, shape_of
+from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape_chunks
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import BvhMotion, ClipMotion, DrapeRequest, PoseMotion
 
 log = logging.getLogger(__name__)
 
-# metres per BVH unit for the request's `units` (None: infer from the skeleton's size)
-BVH_UNITS = {"auto": None, "metres": 1.0, "centimetres": 0.01, "inches": 0.0254, "cmu": 0.0254 / 0.45}
-CLIP_CACHE_ENTRIES = 64  # adapted clips kept per worker (a 10 s clip is ~0.1 MB)
 # The code's algorithm versions (bumped when a stage's maths changes). The asset files' versions
 # (trained models, body, garments, clips) come from their content: ``Runtime.assets``.
 MODEL_VERSIONS = {
@@ -86,6 +78,10 @@ class RequestLimits:
     def job(cls, s: Settings) -> "RequestLimits":
         return cls(s.job_max_frames, s.job_max_total_vertices, s.max_garments, s.max_source_frames, s.max_bvh_bytes)
 
+    @property
+    def motion(self) -> MotionLimits:
+        return MotionLimits(self.max_frames, self.max_source_frames, self.max_bvh_bytes)
+
 
 @dataclass
 class DrapeOutput:
@@ -119,8 +115,7 @@ class Runtime:
         self.models = models or LearnedModels(settings.assets_dir / "models")
         self.assets = assets or AssetDigest.of(settings.assets_dir)  # content versions: cache keys, ETags, metadata
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
-        self._clip_cache: OrderedDict = OrderedDict()
-        self._clip_lock = threading.Lock()
+        self.motions = MotionImporter(body, clips)
 
     @classmethod
     def load(cls, settings: Settings, learned: bool = True) -> "Runtime":
@@ -140,91 +135,22 @@ class Runtime:
                  runtime.assets.combined[:16])
         return runtime
 
-    def _adapted_clip(self, clip_id: str, key: tuple, clip, shape: BodyShape) -> tuple[np.ndarray, np.ndarray]:
-        """The whole clip adapted to this body (``adapt_clip``, ~0.1-0.4 s), memoised per
-        (clip, phenotypes): a shopper's body tries many garments on the same clips."""
-        cache = self._clip_cache
-        with self._clip_lock:
-            hit = cache.get((clip_id, key))
-            if hit is not None:
-                cache.move_to_end((clip_id, key))
-                return hit
-        hit = adapt_clip(clip, self.body, shape)
-        with self._clip_lock:
-            cache[(clip_id, key)] = hit
-            while len(cache) > CLIP_CACHE_ENTRIES:
-                cache.popitem(last=False)
-        return hit
-
-    # ------------------------------------------------------------------ request -> pipeline
-    def _phenotypes(self, request: DrapeRequest) -> np.ndarray:
-        p = request.body.phenotypes
-        return np.array([getattr(p, name) for name in PHENOTYPE_LABELS], np.float32)
-
-    def _motion(self, request: DrapeRequest, shape: BodyShape, limits: RequestLimits | None = None) -> PoseSequence:
-        """The request's motion on this body, at the requested fps, within the frame limit."""
-        m, fps = request.motion, request.options.fps
-        s = limits or RequestLimits.drape(self.settings)
+    # ------------------------------------------------------------------ request -> inference inputs
+    @staticmethod
+    def motion_spec(request: DrapeRequest) -> MotionSpec:
+        m = request.motion
         if isinstance(m, ClipMotion):
-            clip = self.clips.load(m.clip)
-            start = int(round(m.start_s * clip.fps))
-            if start >= clip.num_frames:
-                raise InputValueError("/motion/start_s", f"the clip lasts {clip.duration_s:.2f} s")
-            stop = clip.num_frames
-            if m.duration_s is not None:
-                stop = min(stop, start + int(round(m.duration_s * clip.fps)) + 1)
-            if m.duration_s is not None:
-                self._check_frames(resampled_frame_count(stop - start, clip.fps, fps), fps, s)
-            rotations, translation = self._adapted_clip(m.clip, tuple(shape.phenotypes[0].tolist()), clip, shape)
-            rotations, translation = rotations[0, start:stop], translation[0, start:stop]
-            rotations, translation = resample_motion(rotations, translation, clip.fps, fps)
-            if m.duration_s is None:  # to the end of the clip, within the limit
-                rotations, translation = rotations[: s.max_frames], translation[: s.max_frames]
-        elif isinstance(m, PoseMotion):
-            if len(m.rotations) != len(m.translation):
-                raise InputValueError("/motion/translation", f"{len(m.translation)} frames, rotations have {len(m.rotations)}")
-            if len(m.rotations) > s.max_source_frames:
-                raise InputValueError("/motion/rotations", f"at most {s.max_source_frames} frames")
-            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, fps), fps, s, "/motion/fps")
-            rotations = np.asarray(m.rotations, np.float32)
-            translation = np.asarray(m.translation, np.float32)
-            if np.abs(rotations).max() > 1e3 or np.abs(translation).max() > 1e4:
-                raise InputValueError("/motion", "rotations must be within 1000 rad and translations within 10 km")
-            rotations, translation = resample_motion(rotations, translation, m.fps, fps)
-        else:
-            assert isinstance(m, BvhMotion)
-            if len(m.bvh.encode()) > s.max_bvh_bytes:
-                raise InputValueError("/motion/bvh", f"BVH text exceeds {s.max_bvh_bytes} bytes")
-            source = parse_bvh(m.bvh, unit_scale=BVH_UNITS[m.units], max_frames=s.max_source_frames)
-            self._check_frames(resampled_frame_count(source.num_frames, source.fps, fps), fps, s, "/motion/bvh")
-            result = retarget(source, self.body, shape, fps=fps)
-            rotations, translation = result.rotations, result.translation
-        self._check_frames(len(rotations), fps, s)
-        return PoseSequence(np.ascontiguousarray(rotations, np.float32), np.ascontiguousarray(translation, np.float32), fps)
+            return ClipSpec(m.clip, m.start_s, m.duration_s)
+        if isinstance(m, PoseMotion):
+            return PosesSpec(m.rotations, m.translation, m.fps)
+        assert isinstance(m, BvhMotion)
+        return BvhSpec(m.bvh, m.units)
 
     def output_frames(self, request: DrapeRequest, limits: RequestLimits | None = None) -> int | None:
-        """The number of frames the request's drape will have, from the request alone (clip
-        metadata, pose count and rates); None for BVH, known only once parsed."""
-        m, fps = request.motion, request.options.fps
-        s = limits or RequestLimits.drape(self.settings)
-        if isinstance(m, ClipMotion):
-            if m.clip not in self.clips.ids():
-                return None
-            clip = self.clips.load(m.clip)
-            start = int(round(m.start_s * clip.fps))
-            stop = clip.num_frames if m.duration_s is None else min(clip.num_frames, start + int(round(m.duration_s * clip.fps)) + 1)
-            frames = resampled_frame_count(max(stop - start, 0), clip.fps, fps)
-            return frames if m.duration_s is not None else min(frames, s.max_frames)
-        if isinstance(m, PoseMotion):
-            return resampled_frame_count(len(m.rotations), m.fps, fps)
-        return None
-
-    @staticmethod
-    def _check_frames(frames: int, fps: float, limits: "RequestLimits", field: str = "/motion") -> None:
-        """Refuse a motion whose output frame count (counted before any resampling or
-        retargeting) exceeds the limit."""
-        if frames > limits.max_frames:
-            raise InputValueError(field, f"{frames} frames at {fps:g} fps exceed the limit of {limits.max_frames}; shorten the motion, lower options.fps or use POST /v1/jobs")
+        """The number of frames the request's drape will have, from the request alone; None for
+        BVH, known only once parsed."""
+        limits = limits or RequestLimits.drape(self.settings)
+        return self.motions.output_frames(self.motion_spec(request), request.options.fps, limits.motion)
 
     def check_request(self, request: DrapeRequest, limits: RequestLimits | None = None) -> list[GarmentAsset]:
         """The request's garments in layer order (raises a 422 input error for unknown garment or clip ids,
@@ -240,12 +166,8 @@ class Runtime:
             if gid not in self.catalog.ids():
                 raise InputValueError(f"/garments/{i}/id", f"unknown garment {gid!r}; see GET /v1/garments")
             assets.append(self.catalog.get(gid))
+        self.motions.check(self.motion_spec(request), request.options.fps, limits.motion)  # unknown clip, pose frame count
         # Layer order: the catalog's default layer, then the request's order (stable).
-        if isinstance(request.motion, ClipMotion) and request.motion.clip not in self.clips.ids():
-            raise InputValueError("/motion/clip", f"unknown clip {request.motion.clip!r}; see GET /v1/motions")
-        if isinstance(request.motion, PoseMotion):  # the output frame count, from the input alone
-            m = request.motion
-            self._check_frames(resampled_frame_count(len(m.rotations), m.fps, request.options.fps), request.options.fps, limits, "/motion/fps")
         return [a for _, _, a in sorted((a.layer, i, a) for i, a in enumerate(assets))] if len(assets) > 1 else assets
 
     def prepare(self, request: DrapeRequest, limits: RequestLimits | None = None) -> PreparedDrape:
@@ -253,8 +175,8 @@ class Runtime:
         t0 = time.perf_counter()
         limits = limits or RequestLimits.drape(self.settings)
         assets = self.check_request(request, limits)
-        shape = self.body.shape(self._phenotypes(request)[None])
-        motion = self._motion(request, shape, limits)
+        shape = shape_of(self.body, request.body.phenotypes.model_dump())
+        motion = self.motions.import_motion(self.motion_spec(request), shape, request.options.fps, limits.motion)
         o = request.options
         per_frame = sum(a.num_vertices for a in assets) + (self.body.num_vertices if o.include_body else 0)
         if motion.num_frames * per_frame > limits.max_total_vertices:
@@ -267,22 +189,10 @@ class Runtime:
         return PreparedDrape(request, shape, motion, assets, options, methods, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:
-        """Run the pipeline for several prepared requests: requests with the same merge key (same
-        body, garments, resolved methods and options) go through one ``drape`` call on their
-        concatenated frames."""
-        groups: dict[object, list[int]] = {}
-        for i, p in enumerate(prepared):
-            key = merge_key(p.request, self.defaults)
-            groups.setdefault(key if key is not None else ("solo", i), []).append(i)
-        results: list[DrapeResult | None] = [None] * len(prepared)
-        for members in groups.values():
-            first = prepared[members[0]]
-            motion = merge_motions([prepared[i].motion for i in members])
-            merged = drape(self.body, first.shape, motion, first.assets, first.options, neutral=self.neutral_shape,
-                           segments=[prepared[i].motion.num_frames for i in members], defaults=self.defaults, models=self.models)
-            for i, r in zip(members, split_result(merged, [prepared[i].motion for i in members])):
-                results[i] = r
-        return results  # type: ignore[return-value]
+        """Run the pipeline for several prepared requests (``inference.batch.drape_many``: those
+        with the same body, garments, resolved methods and options share one call)."""
+        jobs = [DrapeJob(p.shape, p.motion, p.assets, p.options, p.methods) for p in prepared]
+        return drape_many(self.body, jobs, neutral=self.neutral_shape, models=self.models, defaults=self.defaults)
 
     def export(self, p: PreparedDrape, result: DrapeResult) -> DrapeOutput:
         """Encode one request's result as glb or npz."""
@@ -292,7 +202,7 @@ class Runtime:
         versions = used_model_versions(o, {g.asset.id: g.method for g in result.garments})
         metadata = {
             "frames": motion.num_frames,
-            "phenotypes": dict(zip(PHENOTYPE_LABELS, map(float, shape.phenotypes[0]))),
+            "phenotypes": dict(zip(PHENOTYPE_LABELS, shape.phenotypes[0].tolist())),
             "model_versions": versions, "options": o.model_dump(),
             "assets_sha256": self.assets.combined, "asset_files_sha256": self.used_files(p, result),
         }
