@@ -45,8 +45,8 @@ Limits per request (defaults; deployments may change them, see the service setti
 | limit | POST /v1/drape | POST /v1/jobs |
 |---|---|---|
 | request body | {s.max_request_bytes} bytes | {s.job_max_request_bytes} bytes |
-| BVH text | {s.max_bvh_bytes} bytes | {s.max_bvh_bytes} bytes |
-| source frames (poses, BVH) | {s.max_source_frames} | {s.max_source_frames} |
+| BVH text, or ASF + AMC texts | {s.max_bvh_bytes} bytes | {s.max_bvh_bytes} bytes |
+| source frames (poses, BVH, AMC) | {s.max_source_frames} | {s.max_source_frames} |
 | output frames (after resampling) | {s.max_frames} | {s.job_max_frames} |
 | garments | {s.max_garments} | {s.max_garments} |
 | total vertices (frames x (garment vertices + body vertices if included)) | {s.max_total_vertices} | {s.job_max_total_vertices} |

@@ -76,7 +76,7 @@ def problem_response(status: int, title: str, detail: str, instance: str = "", e
     return JSONResponse(body, status_code=status, media_type=PROBLEM_JSON, headers=headers)
 
 
-MOTION_TAGS = ("clip", "poses", "bvh")  # the values of the motion discriminator, ``type`` (service/schemas.py)
+MOTION_TAGS = ("clip", "poses", "bvh", "asf_amc")  # the values of the motion discriminator, ``type`` (service/schemas.py)
 
 
 def _escape(token) -> str:

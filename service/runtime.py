@@ -25,11 +25,11 @@ from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
 from inference.garment import GarmentAsset, GarmentCatalog
 from inference.learned import LearnedModels
 from inference.motion.clips import ClipLibrary
-from inference.motion.importer import BvhSpec, ClipSpec, MotionImporter, MotionLimits, MotionSpec, PosesSpec, shape_of
+from inference.motion.importer import AsfAmcSpec, BvhSpec, ClipSpec, MotionImporter, MotionLimits, MotionSpec, PosesSpec, shape_of
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape_chunks
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
-from service.schemas import BvhMotion, ClipMotion, DrapeRequest, PoseMotion
+from service.schemas import AsfAmcMotion, BvhMotion, ClipMotion, DrapeRequest, PoseMotion
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +143,10 @@ class Runtime:
             return ClipSpec(m.clip, m.start_s, m.duration_s)
         if isinstance(m, PoseMotion):
             return PosesSpec(m.rotations, m.translation, m.fps)
-        assert isinstance(m, BvhMotion)
-        return BvhSpec(m.bvh, m.units)
+        if isinstance(m, BvhMotion):
+            return BvhSpec(m.bvh, m.units)
+        assert isinstance(m, AsfAmcMotion)
+        return AsfAmcSpec(m.asf, m.amc, m.fps, m.units)
 
     def output_frames(self, request: DrapeRequest, limits: RequestLimits | None = None) -> int | None:
         """The number of frames the request's drape will have, from the request alone; None for

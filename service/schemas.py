@@ -68,7 +68,17 @@ class BvhMotion(_Strict):
     units: Literal["auto", "metres", "centimetres", "inches", "cmu"] = Field("auto", description="BVH length unit")
 
 
-Motion = Annotated[Union[ClipMotion, PoseMotion, BvhMotion], Field(discriminator="type")]
+class AsfAmcMotion(_Strict):
+    """A CMU-style ASF skeleton and AMC motion (the CMU mocap database's native format), retargeted onto the body."""
+
+    type: Literal["asf_amc"] = Field(description="the motion's kind (the discriminator: required)")
+    asf: str = Field(min_length=1, max_length=1024 * 1024, description="the ASF text (skeleton)")
+    amc: str = Field(min_length=1, max_length=4 * 1024 * 1024, description="the AMC text (motion); with the ASF within the BVH text limit")
+    fps: float = Field(120.0, gt=0.0, le=480.0, allow_inf_nan=False, description="the AMC's frame rate (AMC files do not say; CMU: 120)")
+    units: Literal["auto", "metres", "centimetres", "inches", "cmu"] = Field("auto", description="ASF length unit; auto: the ASF's own")
+
+
+Motion = Annotated[Union[ClipMotion, PoseMotion, BvhMotion, AsfAmcMotion], Field(discriminator="type")]
 
 
 class GarmentSpec(_Strict):

@@ -321,3 +321,30 @@ def test_a_bad_defaults_file_stops_the_start_up(tmp_path, settings):
     (assets / "models" / "defaults.json").write_text(json.dumps(data))
     with pytest.raises(DefaultMethodsError, match=r"defaults\.json: unknown garment ids \['cape'\]"):
         Runtime.load(settings.model_copy(update={"assets_dir": assets}))
+
+
+def _amc_head(text: str, frames: int) -> str:
+    """The AMC header and its first ``frames`` frames (a frame starts at a line holding its number)."""
+    out, seen = [], 0
+    for line in text.splitlines():
+        if line.strip().isdigit():
+            seen += 1
+            if seen > frames:
+                break
+        out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def test_drape_from_asf_amc(client):
+    from inference.motion.resample import resampled_frame_count
+
+    src = REPO_ROOT / "training" / "sources" / "mocap" / "cmu-asfamc" / "02"
+    asf, amc = (src / "02.asf").read_text(), _amc_head((src / "02_01.amc").read_text(), 40)
+    motion = {"type": "asf_amc", "asf": asf, "amc": amc}  # CMU: 120 fps, the ASF's own units
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "motion": motion, "format": "npz", "options": {"include_body": False}})
+    assert r.status_code == 200, r.text
+    assert int(r.headers["x-frames"]) == resampled_frame_count(40, 120.0, 30.0)
+    z = np.load(io.BytesIO(r.content), allow_pickle=False)
+    assert np.isfinite(z["garment_0_vertices"]).all()
+    bad = client.post("/v1/drape", json={**WALK_TSHIRT, "motion": {**motion, "amc": "1\nroot 0 0\n"}})
+    _problem(bad, 422, "/motion")

@@ -1,9 +1,9 @@
 """A request's motion on a shaped body, at the requested frame rate, within the frame limits: the
 one motion import that the service, the jobs and any other caller share.
 
-Three kinds of input (``MotionSpec``): a bundled clip (retargeted by leg length, memoised per
-body), an explicit pose sequence in the body model's pose contract, or a BVH text (parsed and
-retargeted onto the body). The output frame count is known from the input before any work is
+Four kinds of input (``MotionSpec``): a bundled clip (retargeted by leg length, memoised per
+body), an explicit pose sequence in the body model's pose contract, a BVH text, or a CMU ASF
+skeleton with its AMC motion (both parsed and retargeted onto the body). The output frame count is known from the input before any work is
 done (``MotionImporter.output_frames``) and refused past ``MotionLimits.max_frames`` before
 resampling or retargeting. Errors are ``InputValueError`` naming the request field as an RFC 6901
 pointer (``/motion/...``).
@@ -21,6 +21,7 @@ import numpy as np
 
 from inference.body import PHENOTYPE_LABELS, BodyModel, BodyShape
 from inference.errors import InputValueError
+from inference.motion.asfamc import CMU_FPS, parse_amc, parse_asf
 from inference.motion.bvh import parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion, resampled_frame_count
@@ -52,14 +53,22 @@ class BvhSpec:
     units: str = "auto"  # a key of BVH_UNITS
 
 
-MotionSpec = ClipSpec | PosesSpec | BvhSpec
+@dataclass(frozen=True)
+class AsfAmcSpec:
+    asf: str  # the skeleton
+    amc: str  # the motion
+    fps: float = CMU_FPS  # AMC files carry no frame rate; CMU captured at 120
+    units: str = "auto"  # a key of BVH_UNITS; auto: the ASF's own `length` (CMU: 0.45 in per unit)
+
+
+MotionSpec = ClipSpec | PosesSpec | BvhSpec | AsfAmcSpec
 
 
 @dataclass(frozen=True)
 class MotionLimits:
     max_frames: int  # output frames, after resampling
     max_source_frames: int  # frames of an uploaded motion (poses, BVH)
-    max_bvh_bytes: int
+    max_bvh_bytes: int  # BVH text, or ASF + AMC texts together
 
 
 def shape_of(body: BodyModel, phenotypes: dict[str, float]) -> BodyShape:
@@ -89,7 +98,7 @@ class MotionImporter:
 
     def output_frames(self, spec: MotionSpec, fps: float, limits: MotionLimits) -> int | None:
         """Frames of the imported motion at ``fps``, from the input alone (a clip to its end is
-        cut at the limit); None for BVH, known once parsed, or an unknown clip."""
+        cut at the limit); None for BVH and AMC, known once parsed, or an unknown clip."""
         if isinstance(spec, ClipSpec):
             if spec.clip not in self.clips.ids():
                 return None
@@ -134,10 +143,16 @@ class MotionImporter:
                 raise InputValueError("/motion", "rotations must be within 1000 rad and translations within 10 km")
             rotations, translation = resample_motion(rotations, translation, spec.fps, fps)
         else:
-            if len(spec.text.encode()) > limits.max_bvh_bytes:
-                raise InputValueError("/motion/bvh", f"BVH text exceeds {limits.max_bvh_bytes} bytes")
-            source = parse_bvh(spec.text, unit_scale=BVH_UNITS[spec.units], max_frames=limits.max_source_frames)
-            check_frames(resampled_frame_count(source.num_frames, source.fps, fps), fps, limits, "/motion/bvh")
+            if isinstance(spec, BvhSpec):
+                if len(spec.text.encode()) > limits.max_bvh_bytes:
+                    raise InputValueError("/motion/bvh", f"BVH text exceeds {limits.max_bvh_bytes} bytes")
+                source, field = parse_bvh(spec.text, unit_scale=BVH_UNITS[spec.units], max_frames=limits.max_source_frames), "/motion/bvh"
+            else:
+                if len(spec.asf.encode()) + len(spec.amc.encode()) > limits.max_bvh_bytes:
+                    raise InputValueError("/motion/amc", f"ASF and AMC texts exceed {limits.max_bvh_bytes} bytes together")
+                skeleton = parse_asf(spec.asf, unit_scale=BVH_UNITS[spec.units])
+                source, field = parse_amc(spec.amc, skeleton, fps=spec.fps, max_frames=limits.max_source_frames), "/motion/amc"
+            check_frames(resampled_frame_count(source.num_frames, source.fps, fps), fps, limits, field)
             result = retarget(source, self.body, shape, fps=fps)
             rotations, translation = result.rotations, result.translation
         check_frames(len(rotations), fps, limits)
