@@ -16,7 +16,7 @@ from service.auth import ApiKeyAuth
 from service.cache import ResultCache
 from service.config import Settings
 from service.errors import install_problem_handlers
-from service.http_rules import HeadAsGet, JsonOnly
+from service.http_rules import CatalogCaching, HeadAsGet, JsonOnly
 from service.limits import install_body_size_limit
 from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
@@ -112,9 +112,10 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     app.state.job_store = None
     app.state.job_runner = None
     install_problem_handlers(app)
-    # Middleware, innermost first: body size -> JSON only -> auth -> CORS -> HEAD as GET -> request context (outermost).
+    # Middleware, innermost first: body size -> JSON only -> catalog caching -> auth -> CORS -> HEAD as GET -> request context (outermost).
     install_body_size_limit(app, settings.max_request_bytes, {"/v1/jobs": settings.job_max_request_bytes})
     app.add_middleware(JsonOnly, paths=frozenset({"/v1/drape", "/v1/jobs"}))
+    app.add_middleware(CatalogCaching)  # inside the auth: a 304 is an answer too
     keys = settings.api_key_set()
     app.state.auth_on = bool(keys)  # job quotas are per key only where keys are checked
     if keys:

@@ -53,3 +53,48 @@ class JsonOnly:
                 await send({"type": "http.response.body", "body": body})
                 return
         await self.app(scope, receive, send)
+
+
+class CatalogCaching:
+    """ETag and Cache-Control on the read-only catalog routes (garments, their templates,
+    motions, the body model): their answers change only with the shipped assets, the garments'
+    default methods or the API version, so the tag is a digest of those and the path; a GET or
+    HEAD whose If-None-Match names it gets 304 without the route running (RFC 9110 §13.1.2)."""
+
+    PREFIXES = ("/v1/garments", "/v1/motions", "/v1/body-model")
+    CACHE_CONTROL = b"public, max-age=300"
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        path = scope.get("path", "")
+        if scope["type"] != "http" or scope["method"] not in ("GET", "HEAD") or not path.startswith(self.PREFIXES):
+            return await self.app(scope, receive, send)
+        runtime = getattr(scope["app"].state, "runtime", None) if "app" in scope else None
+        if runtime is None:
+            return await self.app(scope, receive, send)
+        tag = catalog_etag(scope["app"].version, runtime, path)
+        given = dict(scope.get("headers") or []).get(b"if-none-match", b"").decode("latin-1")
+        if tag in [t.strip() for t in given.split(",")]:
+            await send({"type": "http.response.start", "status": 304,
+                        "headers": [(b"etag", tag.encode()), (b"cache-control", self.CACHE_CONTROL)]})
+            await send({"type": "http.response.body", "body": b""})
+            return
+
+        async def tagged(message):
+            if message["type"] == "http.response.start" and message["status"] == 200:
+                kept = [(k, v) for k, v in message.get("headers", []) if k.lower() not in (b"etag", b"cache-control")]  # FileResponse's own
+                message["headers"] = [*kept, (b"etag", tag.encode()), (b"cache-control", self.CACHE_CONTROL)]
+            await send(message)
+
+        await self.app(scope, receive, tagged)
+
+
+def catalog_etag(api_version: str, runtime, path: str) -> str:
+    """A strong tag: the catalog's bytes are the same for the same inputs."""
+    import hashlib
+
+    defaults = json.dumps(runtime.defaults.as_dict(), sort_keys=True)
+    digest = hashlib.sha256("\n".join([api_version, runtime.assets.combined, defaults, path]).encode()).hexdigest()
+    return f'"{digest[:32]}"'

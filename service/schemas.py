@@ -10,6 +10,7 @@ from inference.body import PHENOTYPE_RANGES
 from inference.guard import DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M
 
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
+BINARY = {"schema": {"type": "string", "format": "binary"}}  # a binary response body, so that generated clients keep the bytes
 NUM_BONES = 31
 
 

@@ -105,3 +105,24 @@ def test_docs_are_served_without_a_cdn(client):
     for asset in ("swagger-ui-bundle.js", "swagger-ui.css"):
         r = client.get(f"/docs/assets/{asset}")
         assert r.status_code == 200 and len(r.content) > 10_000
+
+
+def test_catalog_routes_carry_an_etag_and_answer_304(client):
+    for path in ("/v1/garments", "/v1/garments/tshirt", "/v1/garments/tshirt/template.glb", "/v1/motions", "/v1/body-model"):
+        r = client.get(path)
+        assert r.status_code == 200 and r.headers["etag"].startswith('"') and "max-age" in r.headers["cache-control"], path
+        again = client.get(path, headers={"if-none-match": r.headers["etag"]})
+        assert again.status_code == 304 and again.content == b"" and again.headers["etag"] == r.headers["etag"], path
+        assert client.get(path, headers={"if-none-match": '"other"'}).status_code == 200
+    tags = {client.get(p).headers["etag"] for p in ("/v1/garments/tshirt", "/v1/garments/dress")}
+    assert len(tags) == 2  # per path
+    assert "etag" not in client.get("/v1/garments/nope").headers  # errors are not tagged
+
+
+def test_binary_answers_are_described_as_binary(client):
+    paths = client.get("/openapi.json").json()["paths"]
+    answers = [paths["/v1/drape"]["post"]["responses"]["200"]["content"], paths["/v1/jobs/{job_id}/result"]["get"]["responses"]["200"]["content"],
+               paths["/v1/garments/{garment_id}/template.glb"]["get"]["responses"]["200"]["content"]]
+    for content in answers:
+        for media in content.values():
+            assert media["schema"] == {"type": "string", "format": "binary"}

@@ -7,7 +7,7 @@ from fastapi.responses import Response
 from service.cache import etag_matches, etag_of, wildcard
 from service.errors import ProblemException
 from service.parsing import KeyContext, request_body_openapi
-from service.schemas import DRAPE_EXAMPLE
+from service.schemas import BINARY as _BINARY, DRAPE_EXAMPLE
 
 router = APIRouter(prefix="/v1", tags=["drape"])
 
@@ -23,7 +23,7 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
         200: {
             "description": "the animated garments (and body): glb (Y-up, metres, morph-target animation) or npz (float32 arrays, Z-up). "
                            "ETag: a weak tag of the request, the model versions and the garments' default methods (content-addressed).",
-            "content": {"model/gltf-binary": {}, "application/x-npz": {}},
+            "content": {"model/gltf-binary": _BINARY, "application/x-npz": _BINARY},
             "headers": {"ETag": {"schema": {"type": "string"}}, "X-Cache": {"schema": {"type": "string", "enum": ["hit", "miss", "coalesced"]}}},
         },
         304: {"description": "If-None-Match names this request's ETag: the client's copy is current (the drape is a safe "

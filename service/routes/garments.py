@@ -5,7 +5,7 @@ from fastapi import APIRouter, Path, Request
 from fastapi.responses import FileResponse
 
 from service.errors import ProblemException
-from service.schemas import ID_PATTERN, DefaultMethodResponse, GarmentDetail, GarmentListResponse, GarmentSummary
+from service.schemas import BINARY as _BINARY, ID_PATTERN, DefaultMethodResponse, GarmentDetail, GarmentListResponse, GarmentSummary
 
 router = APIRouter(prefix="/v1/garments", tags=["garments"])
 _NOT_FOUND = {404: {"description": "unknown garment", "content": {"application/problem+json": {}}}}
@@ -47,7 +47,7 @@ def get_garment(request: Request, garment_id: str = Path(pattern=ID_PATTERN)) ->
 @router.get(
     "/{garment_id}/template.glb",
     response_class=FileResponse,
-    responses={200: {"content": {"model/gltf-binary": {}}, "description": "the garment template on the neutral body, Y-up metres"}, **_NOT_FOUND},
+    responses={200: {"content": {"model/gltf-binary": _BINARY}, "description": "the garment template on the neutral body, Y-up metres"}, **_NOT_FOUND},
 )
 def get_garment_template(request: Request, garment_id: str = Path(pattern=ID_PATTERN)):
     g = _get(request, garment_id)

@@ -8,7 +8,7 @@ from service.auth import client_id
 from service.errors import ProblemException
 from service.jobs import MEDIA_TYPES, JobRecord
 from service.parsing import request_body_openapi
-from service.schemas import DRAPE_EXAMPLE, JobProgress, JobResponse
+from service.schemas import BINARY as _BINARY, DRAPE_EXAMPLE, JobProgress, JobResponse
 from service.runtime import RequestLimits
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -87,7 +87,7 @@ def get_job(request: Request, job_id: str = Path(pattern=JOB_ID_PATTERN)) -> Job
     "/{job_id}/result",
     response_class=Response,
     responses={
-        200: {"description": "the job's output (glb or npz, as POST /v1/drape)", "content": {"model/gltf-binary": {}, "application/x-npz": {}}},
+        200: {"description": "the job's output (glb or npz, as POST /v1/drape)", "content": {"model/gltf-binary": _BINARY, "application/x-npz": _BINARY}},
         409: {"description": "the job has no result (not finished, failed or cancelled)", **_PROBLEM},
         **_NOT_FOUND,
     },
