@@ -300,6 +300,24 @@ def drape(
     )
 
 
+def without_root_travel(result: DrapeResult) -> DrapeResult:
+    """The result with the root's horizontal travel removed (an "in place" motion): every
+    frame's garments, body and bones shifted by -(r_t - r_0) in x and y (Z-up), r_t the root
+    bone's position; the vertical and all the motion's dynamics (computed on the travelling
+    motion) are kept."""
+    root = result.bone_poses[:, 0, :3, 3]
+    shift = np.zeros((len(root), 3), np.float32)
+    shift[:, :2] = root[:, :2] - root[:1, :2]
+    bones = result.bone_poses.copy()
+    bones[:, :, :3, 3] -= shift[:, None]
+    return DrapeResult(
+        garments=[DrapedGarment(asset=g.asset, vertices=g.vertices - shift[:, None], method=g.method) for g in result.garments],
+        shape=result.shape, bone_poses=bones,
+        body_vertices=None if result.body_vertices is None else result.body_vertices - shift[:, None],
+        fps=result.fps, timings_ms=result.timings_ms, wrinkle_state=result.wrinkle_state,
+    )
+
+
 def drape_chunks(
     body: BodyModel,
     shape: BodyShape,

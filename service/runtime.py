@@ -26,7 +26,7 @@ from inference.garment import GarmentAsset, GarmentCatalog
 from inference.learned import LearnedModels
 from inference.motion.clips import ClipLibrary
 from inference.motion.importer import AsfAmcSpec, BvhSpec, ClipSpec, MotionImporter, MotionLimits, MotionSpec, PosesSpec, shape_of
-from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape_chunks
+from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape_chunks, without_root_travel
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import AsfAmcMotion, BvhMotion, ClipMotion, DrapeRequest, PoseMotion
@@ -200,12 +200,14 @@ class Runtime:
         """Encode one request's result as glb or npz."""
         request, shape, motion, o = p.request, p.shape, p.motion, p.request.options
         t_export = time.perf_counter()
+        if request.motion.in_place:
+            result = without_root_travel(result)
         # what each garment ran (its resolved method), not the request's options (null: the default)
         versions = used_model_versions(o, {g.asset.id: g.method for g in result.garments})
         metadata = {
             "frames": motion.num_frames,
             "phenotypes": dict(zip(PHENOTYPE_LABELS, shape.phenotypes[0].tolist())),
-            "model_versions": versions, "options": o.model_dump(),
+            "model_versions": versions, "options": o.model_dump(), "in_place": request.motion.in_place,
             "assets_sha256": self.assets.combined, "asset_files_sha256": self.used_files(p, result),
         }
         tracks = [

@@ -45,6 +45,9 @@ class ClipMotion(_Strict):
     clip: str = Field(pattern=ID_PATTERN, examples=["walk"])
     start_s: float = Field(0.0, ge=0.0, le=3600.0, allow_inf_nan=False, description="start time in the clip, seconds")
     duration_s: float | None = Field(None, gt=0.0, le=3600.0, allow_inf_nan=False, description="seconds to drape (default: to the end, within max_frames)")
+    in_place: bool = Field(True, description="remove the root's horizontal travel from the output (the body walks on the spot, "
+                                             "so it stays in a viewer's frame); the garments move as on the travelling motion. "
+                                             "Default true for bundled clips")
 
 
 Vec3 = Annotated[list[FiniteFloat], Len(3, 3)]
@@ -59,6 +62,8 @@ class PoseMotion(_Strict):
         description="(T, 31, 3) axis-angle per bone, radians, relative to the bone's rest orientation in its rest frame"
     )
     translation: Annotated[list[Vec3], Len(1, 20_000)] = Field(description="(T, 3) root displacement from rest, metres, Z-up")
+    in_place: bool = Field(False, description="remove the root's horizontal travel from the output (see ClipMotion); default false: "
+                                              "the motion as given")
 
 
 class BvhMotion(_Strict):
@@ -67,6 +72,8 @@ class BvhMotion(_Strict):
     type: Literal["bvh"] = Field(description="the motion's kind (the discriminator: required)")
     bvh: str = Field(min_length=1, max_length=4 * 1024 * 1024, description="the BVH text")
     units: Literal["auto", "metres", "centimetres", "inches", "cmu"] = Field("auto", description="BVH length unit")
+    in_place: bool = Field(False, description="remove the root's horizontal travel from the output (see ClipMotion); default false: "
+                                              "the motion as given")
 
 
 class AsfAmcMotion(_Strict):
@@ -77,6 +84,8 @@ class AsfAmcMotion(_Strict):
     amc: str = Field(min_length=1, max_length=4 * 1024 * 1024, description="the AMC text (motion); with the ASF within the BVH text limit")
     fps: float = Field(120.0, gt=0.0, le=480.0, allow_inf_nan=False, description="the AMC's frame rate (AMC files do not say; CMU: 120)")
     units: Literal["auto", "metres", "centimetres", "inches", "cmu"] = Field("auto", description="ASF length unit; auto: the ASF's own")
+    in_place: bool = Field(False, description="remove the root's horizontal travel from the output (see ClipMotion); default false: "
+                                              "the motion as given")
 
 
 Motion = Annotated[Union[ClipMotion, PoseMotion, BvhMotion, AsfAmcMotion], Field(discriminator="type")]

@@ -348,3 +348,21 @@ def test_drape_from_asf_amc(client):
     assert np.isfinite(z["garment_0_vertices"]).all()
     bad = client.post("/v1/drape", json={**WALK_TSHIRT, "motion": {**motion, "amc": "1\nroot 0 0\n"}})
     _problem(bad, 422, "/motion")
+
+
+def test_bundled_clips_are_in_place_by_default(client):
+    def centroid_track(motion):
+        r = client.post("/v1/drape", json={**WALK_TSHIRT, "motion": motion, "format": "npz", "options": {"include_body": True}})
+        assert r.status_code == 200, r.text
+        z = np.load(io.BytesIO(r.content), allow_pickle=False)
+        return z["garment_0_vertices"].mean(axis=1), z["body_vertices"].mean(axis=1), json.loads(str(z["metadata"]))
+
+    walk = {"type": "clip", "clip": "walk", "duration_s": 2.0}
+    (g_in, b_in, meta_in), (g_out, b_out, meta_out) = centroid_track(walk), centroid_track({**walk, "in_place": False})
+    travel = np.linalg.norm(g_out[-1, :2] - g_out[0, :2])
+    assert travel > 1.0 and meta_out["in_place"] is False  # the walk covers metres
+    assert np.abs(g_in[:, :2] - g_in[0, :2]).max() < 0.15 and meta_in["in_place"] is True  # on the spot: the sway only
+    assert np.abs(b_in[:, :2] - b_in[0, :2]).max() < 0.15  # the body too
+    np.testing.assert_allclose(g_in[:, 2], g_out[:, 2], atol=1e-5)  # the vertical is kept
+    # the garment relative to the body is the same either way
+    np.testing.assert_allclose(g_in - b_in, g_out - b_out, atol=1e-4)
