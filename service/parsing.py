@@ -21,6 +21,7 @@ from pydantic import ValidationError
 
 from inference.defaults import DefaultMethods
 from service.cache import request_key
+from service.errors import ProblemException
 from service.schemas import DrapeRequest
 
 INLINE_BYTES = 256 * 1024
@@ -28,11 +29,42 @@ INLINE_BYTES = 256 * 1024
 
 @dataclass(frozen=True)
 class KeyContext:
-    """What a request's cache key depends on besides the request (service.cache.request_key)."""
+    """What a request's cache key depends on besides the request (service.cache.request_key),
+    and the formats the client accepts (``accepted_formats``; None: any)."""
 
     api_version: str
     defaults: DefaultMethods
     assets: str
+    accept: tuple[str, ...] | None = None
+
+
+MEDIA_FORMATS = {"model/gltf-binary": "glb", "application/x-npz": "npz"}
+
+
+def accepted_formats(accept: str | None) -> tuple[str, ...] | None:
+    """The output formats an ``Accept`` header allows, most preferred first (RFC 9110 §12.5.1:
+    q-values, ``*/*`` and ``type/*`` ranges); None when it allows any (no header, or ``*/*``
+    alone); an empty tuple when it allows none of ours (406)."""
+    if not accept or not accept.strip():
+        return None
+    ranked: list[tuple[float, int, str]] = []
+    for i, item in enumerate(accept.split(",")):
+        media, *params = [p.strip() for p in item.split(";")]
+        q = 1.0
+        for p in params:
+            if p.lower().startswith("q="):
+                try:
+                    q = float(p[2:])
+                except ValueError:
+                    q = 0.0
+        media = media.lower()
+        for full, fmt in MEDIA_FORMATS.items():
+            if q > 0 and (media in (full, "*/*") or media == full.split("/")[0] + "/*"):
+                ranked.append((-q, i, fmt))
+    if not ranked:
+        return ()
+    order = tuple(dict.fromkeys(fmt for _, _, fmt in sorted(ranked)))
+    return None if [m.strip().split(";")[0] for m in accept.split(",")] == ["*/*"] else order
 
 
 def _plain_errors(exc: ValidationError) -> list[dict]:
@@ -46,13 +78,21 @@ def _plain_errors(exc: ValidationError) -> list[dict]:
     return out
 
 
-def validate(body: bytes, context: KeyContext | None) -> tuple[DrapeRequest, str] | list[dict]:
+def validate(body: bytes, context: KeyContext | None) -> tuple[DrapeRequest, str] | list[dict] | dict:
     """The validated request and its cache key, or without ``context`` its canonical JSON (what
-    a job store keeps); or the errors."""
+    a job store keeps); or the errors; or ``{"not_acceptable": format}`` when the body names a
+    format that ``context.accept`` refuses. Without a ``format`` in the body, the most preferred
+    accepted one is used."""
     try:
         request = DrapeRequest.model_validate_json(body)
     except ValidationError as exc:
         return _plain_errors(exc)
+    if context is not None and context.accept is not None:  # content negotiation: Accept picks the format
+        if "format" in request.model_fields_set:
+            if request.format not in context.accept:
+                return {"not_acceptable": request.format}
+        elif request.format != context.accept[0]:
+            request = request.model_copy(update={"format": context.accept[0]})
     if context is None:
         return request, request.model_dump_json()
     return request, request_key(request, context.api_version, context.defaults, context.assets)
@@ -84,7 +124,13 @@ class RequestParser:
             outcome = await asyncio.get_running_loop().run_in_executor(self._executor, validate, body, context)
         if isinstance(outcome, list):
             raise RequestValidationError(outcome)
+        if isinstance(outcome, dict):
+            raise not_acceptable(f"the request asks for format {outcome['not_acceptable']!r}, which its Accept header refuses")
         return outcome
+
+
+def not_acceptable(detail: str) -> ProblemException:
+    return ProblemException(406, "Not acceptable", f"{detail}; this route answers {', '.join(MEDIA_FORMATS)}")
 
 
 def request_body_openapi(example: dict) -> dict:

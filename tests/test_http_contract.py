@@ -126,3 +126,25 @@ def test_binary_answers_are_described_as_binary(client):
     for content in answers:
         for media in content.values():
             assert media["schema"] == {"type": "string", "format": "binary"}
+
+
+def test_accept_selects_the_format_and_refuses_what_it_cannot_serve(client):
+    from service.parsing import accepted_formats
+
+    assert accepted_formats(None) is None and accepted_formats("*/*") is None
+    assert accepted_formats("application/x-npz") == ("npz",)
+    assert accepted_formats("model/gltf-binary;q=0.5, application/x-npz") == ("npz", "glb")
+    assert accepted_formats("text/html, */*;q=0.8") == ("glb", "npz")
+    assert accepted_formats("model/*") == ("glb",) and accepted_formats("application/json") == ()
+    assert accepted_formats("application/x-npz;q=0, model/gltf-binary") == ("glb",)
+
+    unformatted = {k: v for k, v in CLIP.items() if k != "format"}
+    npz = client.post("/v1/drape", json=unformatted, headers={"accept": "application/x-npz"})
+    assert npz.status_code == 200 and npz.headers["content-type"] == "application/x-npz" and npz.headers["vary"] == "Accept"
+    glb = client.post("/v1/drape", json=unformatted, headers={"accept": "model/gltf-binary"})
+    assert glb.status_code == 200 and glb.headers["content-type"] == "model/gltf-binary" and glb.content[:4] == b"glTF"
+    assert glb.headers["etag"] != npz.headers["etag"]
+    assert client.post("/v1/drape", json=unformatted).headers["content-type"] == "model/gltf-binary"  # no Accept: the default
+    refused = client.post("/v1/drape", json=CLIP, headers={"accept": "model/gltf-binary"})  # the body says npz
+    assert refused.status_code == 406 and "npz" in refused.json()["detail"], refused.text
+    assert client.post("/v1/drape", json=unformatted, headers={"accept": "application/json"}).status_code == 406

@@ -6,7 +6,7 @@ from fastapi.responses import Response
 
 from service.cache import etag_matches, etag_of, wildcard
 from service.errors import ProblemException
-from service.parsing import KeyContext, request_body_openapi
+from service.parsing import KeyContext, accepted_formats, not_acceptable, request_body_openapi
 from service.schemas import BINARY as _BINARY, DRAPE_EXAMPLE
 
 router = APIRouter(prefix="/v1", tags=["drape"])
@@ -29,6 +29,7 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
         304: {"description": "If-None-Match names this request's ETag: the client's copy is current (the drape is a safe "
                              "computation, so a matching tag is answered as a GET would be)"},
         400: {"description": "the body is not parseable JSON", **_PROBLEM},
+        406: {"description": "the Accept header allows neither model/gltf-binary nor application/x-npz, or refuses the body's format", **_PROBLEM},
         412: {"description": "If-None-Match: * (a drape always has a representation)", **_PROBLEM},
         413: {"description": "request body too large", **_PROBLEM},
         415: {"description": "the body is not application/json", **_PROBLEM},
@@ -40,23 +41,28 @@ _PROBLEM = {"content": {"application/problem+json": {}}}
     },
 )
 async def post_drape(request: Request) -> Response:
-    """The body is a ``DrapeRequest`` (see the schema). Admission happens before the body is
-    read (503 when the queue is full) and again once it is validated (422 when the drape is
-    estimated to outlast the deadline); large bodies are validated off the event loop."""
+    """The body is a ``DrapeRequest`` (see the schema). The output format is the body's
+    ``format``, else the one the ``Accept`` header prefers (``model/gltf-binary`` or
+    ``application/x-npz``; 406 when it allows neither or refuses the body's). Admission happens
+    before the body is read (503 when the queue is full) and again once it is validated (422 when
+    the drape is estimated to outlast the deadline); large bodies are validated off the event loop."""
     state = request.app.state
+    accept = accepted_formats(request.headers.get("accept"))
+    if accept == ():
+        raise not_acceptable(f"Accept: {request.headers.get('accept', '')[:100]!r} allows neither")
     state.pool.admit()
     runtime = state.runtime
-    drape_request, key = await state.parser.parse(request, KeyContext(request.app.version, runtime.defaults, runtime.assets.combined))
+    drape_request, key = await state.parser.parse(request, KeyContext(request.app.version, runtime.defaults, runtime.assets.combined, accept))
     etag = etag_of(key)
     if wildcard(request.headers.get("if-none-match")):
         raise ProblemException(412, "Precondition failed", "If-None-Match: * cannot hold: every valid drape request has a result")
     if etag_matches(request.headers.get("if-none-match"), key):
         state.metrics.cache.labels("not_modified").inc()
-        return Response(status_code=304, headers={"ETag": etag})
+        return Response(status_code=304, headers={"ETag": etag, "Vary": "Accept"})
     if state.cache.get(key) is None:
         runtime.check_request(drape_request)  # the cheap 422s first (unknown ids, the frame limit), then the cost
         state.pool.admit_cost(runtime.output_frames(drape_request), len(drape_request.garments))
     result, how = await state.cache.get_or_compute(key, lambda: state.pool.drape(drape_request))
     state.metrics.cache.labels(how).inc()
-    headers = {**result.headers, "ETag": etag, "X-Cache": how}
+    headers = {**result.headers, "ETag": etag, "X-Cache": how, "Vary": "Accept"}
     return Response(content=result.payload, media_type=MEDIA_TYPES[drape_request.format], headers=headers)
