@@ -23,7 +23,8 @@ from inference.body import BodyModel, BodyShape
 from inference.defaults import DefaultMethods, Method
 from inference.garment import GarmentAsset
 from inference.learned import LearnedModels
-from inference.pipeline import DrapedGarment, DrapeOptions, DrapeResult, PoseSequence, drape
+from inference.options import DrapeOptions
+from inference.pipeline import DrapedGarment, DrapeResult, PoseSequence, drape
 
 # dynamics modes that can run on concatenated motions (the GRU restarts per segment)
 MERGEABLE_DYNAMICS = frozenset({"none", "learned"})
@@ -44,7 +45,8 @@ class DrapeJob:
         """Jobs with equal keys may share one pipeline call; None: run alone."""
         if any(m.dynamics not in MERGEABLE_DYNAMICS for m in self.methods):
             return None
-        return (self.shape.phenotypes.tobytes(), tuple((a.id, m.fit, m.dynamics) for a, m in zip(self.assets, self.methods)), self.options)
+        return (self.shape.phenotypes.tobytes(), tuple((a.id, m.fit, m.dynamics) for a, m in zip(self.assets, self.methods)),
+                self.options.pipeline_key())
 
 
 def drape_many(body: BodyModel, jobs: Sequence[DrapeJob], neutral: BodyShape | None = None, models: LearnedModels | None = None,

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,40 +29,12 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blen
 from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, resolve_methods
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
-from inference.guard import DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M, LayerPlans, guard_layers
+from inference.guard import LayerPlans, guard_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
+from inference.options import DrapeOptions
 from inference.repair import repair_layers
-
-
-@dataclass(frozen=True)
-class DrapeOptions:
-    """fit: 'learned' (retarget + the fit regressor R_G), 'retarget' (the .mhclo binding on the
-    body shape + the template's collision correction) or 'none' (plain LBS of the neutral
-    template). dynamics: 'learned' (the wrinkle GRU R_L over the motion descriptor) or 'none'.
-    The learned modes need the garment's models (``MissingModelError`` otherwise).
-    None (the default): each garment runs its own default (``inference.defaults``,
-    ``assets/models/defaults.json``: the learned model, thesis eq. 4.2, where it beats the
-    baselines on the validation protocol, docs/evaluation.md; else the retarget baseline), so one
-    drape may layer a learned garment over a retargeted one. A value applies to every garment;
-    fit 'none' is only ever such an explicit, uniform choice (it changes the skinning transforms
-    and the guard's rest body of the whole drape).
-    margin_m: guard margin to the body; layer_gap_m: extra margin per layer above the innermost.
-    lift_arms: abduct the upper arms out of the torso first (``inference.motion.self_contact``).
-    guard_check: the guard's closest-triangle check after its plane push (``inference.guard``).
-    guard_exact: last, move every garment vertex still inside the body, by the exact winding
-    number, to the outside (``inference.repair``; after the layers' pushes, with each layer's margin)."""
-
-    fit: FitMode | None = None
-    dynamics: DynamicsMode | None = None
-    guard: bool = True
-    margin_m: float = DEFAULT_MARGIN_M
-    layer_gap_m: float = DEFAULT_LAYER_GAP_M
-    include_body: bool = True
-    lift_arms: bool = True
-    guard_check: bool = True
-    guard_exact: bool = True
 
 
 @dataclass(frozen=True)
@@ -340,7 +312,7 @@ def drape_chunks(
     methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults)
     if options.lift_arms:
         lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation)
-        motion, options = PoseSequence(lifted, motion.translation, motion.fps), replace(options, lift_arms=False)
+        motion, options = PoseSequence(lifted, motion.translation, motion.fps), options.replace(lift_arms=False)
     gamma = None
     if any(m.dynamics == "learned" for m in methods):
         gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)

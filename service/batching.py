@@ -32,5 +32,5 @@ def merge_key(request: DrapeRequest, defaults: DefaultMethods) -> tuple | None:
     return (
         (p.gender, p.age, p.muscle, p.weight, p.height, p.proportions),
         tuple((g.id, m.fit, m.dynamics) for g, m in zip(request.garments, methods)),
-        o.guard, o.margin_m, o.layer_gap_m, o.lift_arms, o.guard_check, o.guard_exact,
+        o.pipeline_key(),
     )

@@ -41,9 +41,9 @@ MODEL_VERSIONS = {
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)
-    "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.guard_check, the default)
-    "guard_plain": "plane-push-v3",  # options.guard_check = false: the push alone (v3: farther limbs)
-    "repair": "winding-repair-v1",  # options.guard_exact, the default (inference/repair.py)
+    "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.collisions 'check' and 'exact')
+    "guard_plain": "plane-push-v3",  # options.collisions 'push': the push alone (v3: farther limbs)
+    "repair": "winding-repair-v1",  # options.collisions 'exact', the default (inference/repair.py)
     "arms": "shoulder-lift-v2",  # options.lift_arms, the default (inference/motion/self_contact.py); v2: 10 mm clearance
 }
 
@@ -185,8 +185,7 @@ class Runtime:
             raise InputValueError(
                 "", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
             )
-        options = DrapeOptions(fit=o.fit, dynamics=o.dynamics, guard=o.guard, margin_m=o.margin_m, layer_gap_m=o.layer_gap_m, include_body=o.include_body,
-                               lift_arms=o.lift_arms, guard_check=o.guard_check, guard_exact=o.guard_exact)
+        options = o  # the request's options are the pipeline's (inference.options.DrapeOptions)
         methods = resolve_methods([a.id for a in assets], o.fit, o.dynamics, self.defaults)
         return PreparedDrape(request, shape, motion, assets, options, methods, t0)
 

@@ -7,7 +7,7 @@ from annotated_types import Len
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 
 from inference.body import PHENOTYPE_RANGES
-from inference.guard import DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M
+from inference.options import DrapeOptions  # the one options model (pipeline, jobs and contract)
 
 ID_PATTERN = r"^[A-Za-z0-9_\-]{1,64}$"
 BINARY = {"schema": {"type": "string", "format": "binary"}}  # a binary response body, so that generated clients keep the bytes
@@ -93,45 +93,6 @@ Motion = Annotated[Union[ClipMotion, PoseMotion, BvhMotion, AsfAmcMotion], Field
 
 class GarmentSpec(_Strict):
     id: str = Field(pattern=ID_PATTERN, examples=["tshirt"])
-
-
-class DrapeOptions(_Strict):
-    fps: float = Field(30.0, ge=1.0, le=120.0, allow_inf_nan=False, description="output frame rate")
-    include_body: bool = Field(True, description="add the posed body to the output")
-    fit: Literal["learned", "retarget", "none"] | None = Field(
-        None,
-        description="garment fit to the body shape, for every garment of the request: 'learned' = the .mhclo retarget + "
-        "the fit regressor R_G (ONNX, trained self-supervised on the SNUG physics energies); 'retarget' = the .mhclo "
-        "retarget baseline; 'none' = plain LBS of the neutral template. Null or omitted (default): each garment's own "
-        "default fit, the method chosen for it on the validation protocol (GET /v1/garments/{id}, default_method)",
-    )
-    dynamics: Literal["learned", "none"] | None = Field(
-        None,
-        description="dynamic wrinkles, for every garment of the request: 'learned' = the wrinkle GRU R_L over the motion "
-        "descriptor (eq. 6.17); 'none' = static fit. Null or omitted (default): each garment's own default dynamics "
-        "(GET /v1/garments/{id}, default_method)",
-    )
-    guard: bool = Field(True, description="push garment vertices out of the body after skinning; false: no collision "
-                                          "handling at all (guard_check and guard_exact apply only with the guard)")
-    margin_m: float = Field(DEFAULT_MARGIN_M, ge=0.0, le=0.02, allow_inf_nan=False, description="guard margin to the body, metres")
-    layer_gap_m: float = Field(DEFAULT_LAYER_GAP_M, ge=0.0, le=0.02, allow_inf_nan=False, description="extra margin per garment layer, metres")
-    lift_arms: bool = Field(
-        True,
-        description="abduct the upper arms about the shoulder, per frame, where the body shape sinks them into the torso "
-        "(a clip retargeted onto a heavier body); the returned body follows the corrected pose. false: the pose as given",
-    )
-    guard_check: bool = Field(
-        True,
-        description="after the guard's push along the nearest body vertex's normal, check each nearby garment vertex "
-        "against the closest body triangle and move it out where it is still inside (up to ~4x fewer vertices left inside "
-        "the body, ~3-4 ms per garment-frame). false: the push alone (~1.4x the throughput)",
-    )
-    guard_exact: bool = Field(
-        True,
-        description="after the guard, test every garment vertex against the posed body with the exact winding number and "
-        "move any still inside (folds and overlaps of the skinned body: a few vertices per frame) to the nearest skin "
-        "point outside, so that none is inside the body (~7 ms per garment-frame). false: skip it",
-    )
 
 
 class DrapeRequest(_Strict):

@@ -4,7 +4,11 @@ is not JSON, 413 for a streamed body past the limit, HEAD on GET routes, 412 for
 ``If-None-Match: *`` on POST, and a contract whose limits are the server's."""
 from __future__ import annotations
 
+import io
 import json
+
+import numpy as np
+import pytest
 
 from service.errors import field_of
 
@@ -148,3 +152,27 @@ def test_accept_selects_the_format_and_refuses_what_it_cannot_serve(client):
     refused = client.post("/v1/drape", json=CLIP, headers={"accept": "model/gltf-binary"})  # the body says npz
     assert refused.status_code == 406 and "npz" in refused.json()["detail"], refused.text
     assert client.post("/v1/drape", json=unformatted, headers={"accept": "application/json"}).status_code == 406
+
+
+def test_collisions_is_one_choice_and_the_old_flags_map_to_it():
+    from inference.options import DrapeOptions
+
+    assert DrapeOptions().collisions == "exact"
+    assert DrapeOptions.model_validate({"guard": False}).collisions == "off"
+    assert DrapeOptions.model_validate({"guard_exact": False}).collisions == "check"
+    assert DrapeOptions.model_validate({"guard_exact": False, "guard_check": False}).collisions == "push"
+    o = DrapeOptions(collisions="check")
+    assert (o.guard, o.guard_check, o.guard_exact) == (True, True, False)
+    assert o.replace(guard=False).collisions == "off" and o.replace(guard_exact=True).collisions == "exact"
+    with pytest.raises(ValueError):
+        DrapeOptions.model_validate({"collisions": "exact", "guard": False})  # contradictory
+
+
+def test_the_contract_names_collisions_not_the_flags(client):
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["DrapeOptions"]["properties"]
+    assert schema["collisions"]["enum"] == ["off", "push", "check", "exact"] and schema["collisions"]["default"] == "exact"
+    assert not {"guard", "guard_check", "guard_exact"} & set(schema)
+    r = client.post("/v1/drape", json={**CLIP, "options": {"include_body": False, "collisions": "off"}})
+    assert r.status_code == 200
+    meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
+    assert meta["options"]["collisions"] == "off" and meta["model_versions"]["guard"] == "none"

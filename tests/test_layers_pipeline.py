@@ -4,7 +4,6 @@ layer's margin (the body margin plus one layer gap per layer below), and it move
 farther than a bound."""
 from __future__ import annotations
 
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -26,7 +25,7 @@ def layered(runtime):
     assets = [catalog.get("tshirt"), catalog.get("jacket")]
     options = DrapeOptions(fit="retarget", dynamics="none")
     full = drape(body, shape, motion, assets, options, neutral=runtime.neutral_shape)
-    unrepaired = drape(body, shape, motion, assets, replace(options, guard_exact=False), neutral=runtime.neutral_shape)
+    unrepaired = drape(body, shape, motion, assets, options.replace(collisions="check"), neutral=runtime.neutral_shape)
     return runtime.body, full, unrepaired, options
 
 

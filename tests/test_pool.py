@@ -166,7 +166,8 @@ def test_merged_pipeline_call_equals_solo_calls(runtime):
     frames: exact without the guard; with it, equal but for a few guard-pushed vertices."""
     reqs = [_request("walk", 0.3), _request("run", 0.5), _request("dance", 0.2)]
     for guard in (False, True):
-        rs = [DrapeRequest.model_validate({**r.model_dump(), "options": {**r.options.model_dump(), "guard": guard}}) for r in reqs]
+        rs = [DrapeRequest.model_validate({**r.model_dump(), "options": {**r.options.model_dump(), "collisions": "exact" if guard else "off"}})
+              for r in reqs]
         prepared = [runtime.prepare(r) for r in rs]
         merged = runtime.drape_batch(prepared)
         for p, m in zip(prepared, merged):

@@ -45,7 +45,7 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -173,7 +173,7 @@ def drape_row(body: BodyModel, catalog: GarmentCatalog, clip, name: str, phenoty
     dynamic = any(d != "none" for _, d in garment_methods(options, garment_ids))
     keep = np.arange(frames[-1] + 1) if dynamic else frames
     motion = PoseSequence(full.rotations[keep], full.translation[keep], full.fps)
-    result = drape(body, shape, motion, [catalog.get(g) for g in garment_ids], replace(options, lift_arms=False), neutral=neutral)
+    result = drape(body, shape, motion, [catalog.get(g) for g in garment_ids], options.replace(lift_arms=False), neutral=neutral)
     at = np.searchsorted(keep, frames)
     posed = result.body_vertices
     if posed is None:  # no guard: pose the body from the bone poses, T = W P^-1

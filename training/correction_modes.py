@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +53,7 @@ def _rest_corrections(inputs, garment: str, phenotypes: np.ndarray, every: int, 
     shape, motion = shaped_motion(body, inputs.clip, phenotypes)
     # the learned model, named (not the garment's default); shaped_motion has lifted the arms already
     options = DrapeOptions(fit="learned", dynamics="learned", lift_arms=False)
-    raw = drape(body, shape, motion, [asset], replace(options, guard=False), neutral=inputs.neutral, models=models).garments[0].vertices[::every]
+    raw = drape(body, shape, motion, [asset], options.replace(guard=False), neutral=inputs.neutral, models=models).garments[0].vertices[::every]
     guarded = drape(body, shape, motion, [asset], options, neutral=inputs.neutral, models=models).garments[0].vertices[::every]
     _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, ::every], motion.translation[None, ::every])
     blend = np.einsum("vj,tjab->tvab", asset.skin_weights.astype(np.float64), transforms[0, :, :, :3, :3].astype(np.float64))

@@ -33,7 +33,7 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -183,7 +183,7 @@ def evaluate(clip_id: str = "01_01", every: int = 8, garments: list[str] | None 
 
 
 def _with(options: DrapeOptions, **changes) -> DrapeOptions:
-    return replace(options, **changes)
+    return options.replace(**changes)
 
 
 # ---------------------------------------------------------------------------------- static fit

@@ -165,7 +165,7 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
         t0 = time.perf_counter()
         after = drape(body, shape, m, [asset], options)
         ms_per_frame = (time.perf_counter() - t0) * 1e3 / m.num_frames
-        before = drape(body, shape, m, [asset], replace(options, guard=False))
+        before = drape(body, shape, m, [asset], options.replace(guard=False))
         v_after, v_before = after.garments[0].vertices[sl], before.garments[0].vertices[sl]
         body_frames = after.body_vertices[sl]
         r = {
