@@ -76,7 +76,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError, InputValueError
-from inference.mesh import face_normals, major_components, vertex_face_incidence, vertex_normals  # noqa: F401 (re-exported)
+from inference.mesh import face_normals, major_components, vertex_face_incidence, vertex_normals
 from inference.triangles import closest_barycentrics
 
 # Default clearance between the body and the innermost garment (DESIGN.md §3: 2–4 mm).

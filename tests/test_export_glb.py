@@ -16,7 +16,8 @@ import pygltflib
 import pytest
 
 from inference.errors import InputValueError
-from inference.export.glb import ANIMATION_NAME, chunk_ranges, split_uv_seams, vertex_normals, write_glb, zup_to_yup
+from inference.export.glb import ANIMATION_NAME, chunk_ranges, split_uv_seams, write_glb, zup_to_yup
+from inference.mesh import vertex_normals
 from inference.export.tracks import BodyTrack, GarmentTrack, pose_body_vertices
 from inference.rotations import axis_angle_to_matrix, quaternion_to_matrix
 
@@ -388,6 +389,10 @@ def test_vertex_normals_match_naive_sum_over_faces():
             naive[f] += np.cross(b - a, c - a)
         naive /= np.linalg.norm(naive, axis=1, keepdims=True)
         np.testing.assert_allclose(fast[t], naive, atol=1e-6)
+    lonely = np.concatenate([g.vertices, np.zeros((3, 1, 3), np.float32)], axis=1)  # a vertex on no face
+    assert (vertex_normals(lonely, g.faces)[:, -1] == 0).all()
+    assert (vertex_normals(lonely, g.faces, fallback=(0.0, 1.0, 0.0))[:, -1] == [0.0, 1.0, 0.0]).all()
+    assert vertex_normals(lonely[None], g.faces).shape == (1,) + lonely.shape  # any leading axes
 
 
 def test_normals_are_unit_and_follow_the_motion():

@@ -223,7 +223,7 @@ def test_dress_skirt_weights_are_smooth(catalog, body, neutral):
     top = v[:, 2] > 0.3
     fold = [names.index(n) for n in ("LThumb", "LeftFingerBase", "LeftHandFinger1", "RThumb", "RightFingerBase",
                                      "RightHandFinger1", "LeftToeBase", "RightToeBase")]
-    from inference.guard import vertex_normals
+    from inference.mesh import vertex_normals
     from training.assets.build_garments import SKIN_PROBE_DEPTH_M
 
     probe = v - SKIN_PROBE_DEPTH_M * vertex_normals(v[None], g.faces)[0]  # the faced body surface

@@ -66,7 +66,7 @@ def test_fit_exact_inside_test_on_the_rest_skin():
     from types import SimpleNamespace
 
     from inference.body import BodyModel
-    from inference.guard import vertex_normals
+    from inference.mesh import vertex_normals
     from training.train_fit import exact_inside
 
     body = BodyModel.load()

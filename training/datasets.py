@@ -22,7 +22,7 @@ from scipy.sparse.linalg import eigsh
 
 from inference.body import BodyModel, linear_blend_skinning
 from inference.garment import GarmentAsset
-from inference.guard import vertex_normals
+from inference.mesh import vertex_normals
 from inference.metrics import inside_mask
 from inference.motion.asfamc import load_asf_amc
 from inference.motion.bvh import load_bvh

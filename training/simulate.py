@@ -72,7 +72,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, linear_blend_skinning
-from inference.guard import vertex_normals
+from inference.mesh import vertex_normals
 from inference.metrics import self_intersecting_vertices
 from training.physics import (
     GRAVITY_M_S2,

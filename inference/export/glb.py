@@ -43,6 +43,7 @@ import numpy as np
 
 from inference.errors import InputValueError
 from inference.export.tracks import BodyTrack, GarmentTrack, dense_skin_weights, rigid_inverse
+from inference.mesh import vertex_normals
 from inference.rotations import matrix_to_quaternion
 
 # (x, y, z) Z-up -> (x, z, -y) Y-up, a rotation of -90 degrees about X.
@@ -112,31 +113,6 @@ def chunk_ranges(num_frames: int, max_targets: int) -> list[tuple[int, int]]:
         return [(0, 0)]
     starts = range(0, num_frames - 1, max_targets)
     return [(s, min(s + max_targets, num_frames - 1)) for s in starts]
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals; (0, 1, 0) where a vertex has no area.
-
-    vertices : (T, V, 3) float32, metres
-    faces    : (F, 3) int
-    returns  : (T, V, 3) float32
-    """
-    T, V = vertices.shape[:2]
-    v0, v1, v2 = (vertices[:, faces[:, k]] for k in range(3))  # (T, F, 3) each
-    a, b = v1 - v0, v2 - v0
-    # fn = a x b, |fn| = 2 area; components on axis 1 so the sums below run over contiguous memory
-    fn = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                   a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                   a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=1)  # (T, 3, F)
-    # n_v = sum of fn_f over the faces f with a corner at v: corners sorted by vertex, then reduceat.
-    corners = faces.ravel()
-    order = np.argsort(corners, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(corners[order]) != 0])
-    n = np.zeros((T, 3, V), np.float32)
-    n[..., corners[order[starts]]] = np.add.reduceat(fn[..., order // 3], starts, axis=-1)
-    n = n.transpose(0, 2, 1)
-    length = np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(length > 1e-12, n / np.maximum(length, 1e-30), np.float32([0.0, 1.0, 0.0])).astype(np.float32)
 
 
 class _BinaryBuilder:
@@ -301,7 +277,7 @@ def _write_garment(g: GarmentTrack, b: _BinaryBuilder, anim: _AnimationBuilder |
         morphs = [{"POSITION": t} for t in targets]
         if normals:
             # Normals of the welded mesh (smooth across UV seams), split like the positions.
-            n = vertex_normals(frames[start:end + 1], g.faces)[:, vertex_map]
+            n = vertex_normals(frames[start:end + 1], g.faces, fallback=(0.0, 1.0, 0.0))[:, vertex_map]  # glTF: unit normals
             attributes["NORMAL"] = b.accessor(b.view(n[0], _ARRAY_BUFFER, stride=12), np.float32, N, 3)
             if L:
                 view = b.view(n[1:] - n[0], _ARRAY_BUFFER, stride=12)

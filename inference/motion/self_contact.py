@@ -43,7 +43,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.body import BodyModel, BodyShape, linear_blend_skinning
-from inference.guard import vertex_normals
+from inference.mesh import vertex_normals
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 # Bones of each arm chain (shoulder joint = head of the first) and of the body they must clear.

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 
 from inference.body import ASSETS_DIR, NEUTRAL_PHENOTYPES, BodyModel
 from inference.garment import bind_garment
-from inference.guard import vertex_normals
+from inference.mesh import vertex_normals
 from training.assets import garments_fit as fit
 from training.assets import garments_mesh as gm
 
