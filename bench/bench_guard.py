@@ -26,7 +26,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, linear_blend_skinning  # noqa: E402
-from inference.guard import GuardPlan, guard, vertex_normals  # noqa: E402
+from inference.guard import GuardPlan, guard  # noqa: E402
+from inference.mesh import vertex_normals  # noqa: E402
 from inference.metrics import collision_rates, inside_mask  # noqa: E402
 from inference.repair import exact_repair  # noqa: E402
 

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
-from inference.guard import major_components, vertex_normals
+from inference.mesh import major_components, vertex_normals
 from inference.mesh import face_normals
 from inference.winding import check_faces as _faces
 from inference.winding import winding_numbers

@@ -6,15 +6,8 @@ from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, linear_blend_skinning
 from inference.errors import InputShapeError, InputValueError
-from inference.guard import (
-    GuardPlan,
-    LayerPlans,
-    guard,
-    guard_layers,
-    major_components,
-    push_outside,
-    vertex_normals,
-)
+from inference.guard import GuardPlan, LayerPlans, guard, guard_layers, push_outside
+from inference.mesh import major_components, vertex_normals
 from inference.metrics import inside_mask, near_self_intersection, signed_distance
 
 MARGIN = 0.002
@@ -192,7 +185,7 @@ def test_closest_triangle_check_catches_a_point_the_vertex_plane_misjudges(monke
     """Just inside the face x = 1 next to the concave corner edge, the nearest vertex is on that
     edge, whose tangent plane (normal along the notch's bisector) misjudges the point; the
     closest triangle (the face x = 1) shows it is inside, and the check moves it out."""
-    import inference.guard as G
+    import inference.guard.push as G  # the kernels read these constants
 
     verts, faces = _l_prism()
     rng = np.random.default_rng(0)  # up to 10 cm inside the face x = 1 of the upper bar
@@ -232,7 +225,7 @@ def test_closest_triangle_check_leaves_outside_points_alone():
 def test_closest_triangle_check_overflow_slots_give_the_same_result(monkeypatch):
     """Rings longer than _RING_SLOTS are finished for their vertices alone: the result must be
     bit-identical to computing every padded slot."""
-    import inference.guard as G
+    import inference.guard.push as G  # the kernels read these constants
 
     verts, faces = _sphere(2)
     rng = np.random.default_rng(5)

@@ -3,7 +3,9 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from inference.guard import DEFAULT_MARGIN_M, GuardPlan, _planes, _push_block, boundary_vertices, push_outside, vertex_normals
+from inference.guard import DEFAULT_MARGIN_M, GuardPlan, boundary_vertices, push_outside
+from inference.guard.push import _planes, _push_block
+from inference.mesh import vertex_normals
 
 
 def test_screened_push_equals_pushing_every_point():

@@ -1,0 +1,306 @@
+"""The guard's plan of one garment against one collider, built once per drape from the rest
+pose: each point's candidate collider vertices (rest-pose nearest, skin-aware ones from other
+bones, the dynamic points searched per frame), the collider's borders and one-rings.
+
+Units: metres. Arrays: float32, batch axis first.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from inference.errors import InputShapeError
+from inference.guard.constants import (
+    DEFAULT_AHEAD_M,
+    DEFAULT_CANDIDATES,
+    DYNAMIC_REACH_M,
+    DYNAMIC_REGION_M,
+    DYNAMIC_RISK_M,
+    DYNAMIC_VOXEL_M,
+    _OPPOSING_COS,
+    _SKIN_SCAN,
+)
+from inference.guard.push import _check_frames, _planes
+from inference.mesh import major_components, vertex_face_incidence, vertex_normals
+
+
+def _gather(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """a (B, M, 3), idx (B, N) -> (B, N, 3)."""
+    return np.take_along_axis(a, idx[..., None], axis=1)
+
+
+def boundary_vertices(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """(V,) bool: vertices on an edge used by a single face (the border of an open mesh)."""
+    faces = np.asarray(faces, np.int64)
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    # edge (a, b), a < b, as one int64 key a * V + b: a 1-D unique (np.unique(axis=0) is ~10x slower)
+    uniq, count = np.unique(e[:, 0] * num_vertices + e[:, 1], return_counts=True)
+    single = uniq[count == 1]
+    out = np.zeros(num_vertices, bool)
+    out[single // num_vertices] = True
+    out[single % num_vertices] = True
+    return out
+
+
+def _one_rings(tris: np.ndarray, S: int) -> tuple[np.ndarray, np.ndarray]:
+    """(S, R, 2): the triangles around each vertex s < S, from triangles (n, 3) of local vertex
+    ids, each rotated to (s, b, c) (same orientation) and stored as (b, c); a row repeats its
+    first triangle up to R (the largest valence); a vertex on no triangle gets (s, s) (such
+    vertices are never candidates: they only close the rings). Also the valences (S,)."""
+    tris = np.asarray(tris, np.int64)
+    vert = tris.ravel()
+    corner = np.tile(np.arange(3), len(tris))
+    tri = np.repeat(np.arange(len(tris)), 3)
+    rest = np.stack([tris[tri, (corner + 1) % 3], tris[tri, (corner + 2) % 3]], axis=1)  # (3n, 2)
+    order = np.argsort(vert, kind="stable")
+    vert, rest = vert[order], rest[order]
+    count = np.bincount(vert, minlength=S)
+    first = np.cumsum(count) - count
+    col = np.arange(len(vert)) - first[vert]
+    table = np.repeat(np.arange(S)[:, None, None], 2, axis=2).repeat(max(int(count.max()), 1), axis=1)
+    has = count > 0
+    table[has] = rest[first[has]][:, None, :]
+    table[vert, col] = rest
+    return table.astype(np.int32), count.astype(np.int32)
+
+
+@dataclass(frozen=True)
+class GuardPlan:
+    """Per-request precomputation for ``guard``: candidates and normal data of one collider.
+
+    collider_ids   : (S,) int, the collider vertices any point may touch (the union of candidates)
+    candidates     : (B, N, k) int, indices into ``collider_ids``
+    across         : (B, N, k) bool, candidates on another surface across a gap (module doc)
+    face_ids       : (Fs,) int, collider faces touching ``collider_ids`` (for their normals)
+    incidence      : (S, Fs) CSR 0/1, vertex-face incidence of those
+    faces          : (F, 3) int, the collider's faces
+    orientation    : +1.0, or -1.0 when the collider's faces wind inwards (normals are flipped)
+    boundary       : (S,) bool or None, border vertices of an open collider
+    reach_m        : median collider edge length, metres (border tolerance)
+    dynamic_points : (Nd,) int or None, points that get per-frame nearest candidates (skin-aware
+                     plans: points within DYNAMIC_RISK_M of a part skinned to another bone)
+    dynamic_region : (R,) int or None, indices into ``collider_ids`` searched for them per frame
+    ring           : (S, R, 2) int or None, closed colliders: the triangles around each collider
+                     vertex s (its one-ring, padded by repetition) as (s, b, c) counter-clockwise,
+                     b and c indices into ``collider_ids``, for the closest-triangle check
+    ring_valence   : (S,) int or None, the number of distinct triangles in each ring
+    """
+
+    collider_ids: np.ndarray
+    candidates: np.ndarray
+    across: np.ndarray
+    face_ids: np.ndarray
+    incidence: sp.csr_matrix
+    faces: np.ndarray
+    orientation: float
+    boundary: np.ndarray | None
+    reach_m: float
+    dynamic_points: np.ndarray | None = None
+    dynamic_region: np.ndarray | None = None
+    ring: np.ndarray | None = None
+    ring_valence: np.ndarray | None = None
+
+    @classmethod
+    def build(
+        cls,
+        points_rest: np.ndarray,
+        collider_rest: np.ndarray,
+        collider_faces: np.ndarray,
+        k: int = DEFAULT_CANDIDATES,
+        *,
+        k_ahead: int = 2,
+        ahead_m: float = DEFAULT_AHEAD_M,
+        frames: tuple[np.ndarray, np.ndarray] | None = None,
+        k_frames: int = 4,
+        skin: tuple[np.ndarray, np.ndarray] | None = None,
+        k_skin: int = 4,
+        rings: bool = True,
+    ) -> "GuardPlan":
+        """Candidates: the k collider vertices nearest to each point in the reference pose, plus
+        the k_ahead nearest to p + ahead_m n_0 (n_0: normal of the nearest vertex), plus the
+        k_skin nearest skinned mostly to another bone than the point (when ``skin`` is given).
+
+        Where the rest pose puts two parts side by side (a sleeve's armpit against the torso in
+        the A-pose), the plain nearest candidates may all lie on the part the point is skinned
+        to; when a joint bends, the other part comes against it (measured on 01_01: T-shirt
+        vertices skinned to the arm sank into the torso unseen). The skin-aware candidates are
+        the nearest collider vertices whose dominant bone differs from the point's.
+
+        points_rest    : (B, N, 3) float32, metres, garment vertices in the rest pose
+        collider_rest  : (B, M, 3) float32, metres, collider vertices in the same pose
+        collider_faces : (F, 3) int
+        k              : candidates per point from the rest pose
+        k_ahead        : candidates per point from ahead_m (metres) along the rest normal
+        frames         : optional (points (B, T', N, 3), collider (B, T', M, 3)) posed key frames;
+                         each adds its ``k_frames`` nearest collider vertices per point
+        skin           : optional (point weights (N, J), collider weights (M, J)) LBS weights
+        rings          : closed colliders: also keep the candidates' one-ring triangles and
+                         their corners (``ring``, for the closest-triangle check)
+        """
+        points_rest = _check_frames("points_rest", points_rest, 3)
+        collider_rest = _check_frames("collider_rest", collider_rest, 3)
+        B, N = points_rest.shape[:2]
+        M = collider_rest.shape[1]
+        if collider_rest.shape[0] != B:
+            raise InputShapeError("collider_rest", f"({B}, M, 3)", collider_rest.shape)
+        faces = np.asarray(collider_faces, np.int64)
+        if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= M:
+            raise InputShapeError("collider_faces", f"(F, 3) indices < {M}", faces.shape)
+        bnd = boundary_vertices(faces, M)
+        # closed collider: only its major components (anny's eyes and teeth sit in the head and
+        # are never the surface a garment rests on)
+        usable = np.flatnonzero(major_components(faces, M)) if not bnd.any() else np.arange(M)
+        k = int(min(k, len(usable)))
+        trees = [cKDTree(collider_rest[b][usable]) for b in range(B)]
+        near = np.stack([usable[trees[b].query(points_rest[b], k=k)[1].reshape(N, k)] for b in range(B)])
+        n_rest = vertex_normals(collider_rest, faces)
+        if bnd.any():
+            # open collider (a garment): the points lie on its outer side in the reference pose
+            side = np.einsum("bnc,bnc->bn", points_rest - _gather(collider_rest, near[..., 0]), _gather(n_rest, near[..., 0]))
+            orientation = -1.0 if np.median(side) < 0 else 1.0
+        else:
+            # closed collider: outward iff the signed volume sum_f v0 . (v1 x v2) / 6 is positive
+            tri = collider_rest[0].astype(np.float64)[faces]
+            orientation = -1.0 if np.einsum("fc,fc->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) < 0 else 1.0
+        n_rest = n_rest * np.float32(orientation)
+        parts = [near]
+        n0 = _gather(n_rest, near[..., 0])  # (B, N, 3) the point's own surface normal
+        if k_ahead > 0:
+            q = points_rest + ahead_m * n0
+            kk = int(min(k_ahead, len(usable)))
+            parts.append(np.stack([usable[trees[b].query(q[b], k=kk)[1].reshape(N, kk)] for b in range(B)]))
+        if skin is not None and k_skin > 0:
+            # the nearest collider vertices skinned mostly to another bone than the point: the
+            # parts that a bending joint can bring against it (arm vs torso at the armpit)
+            pw, cw = (np.asarray(w, np.float32) for w in skin)
+            if pw.shape[0] != N or cw.shape[0] != M or pw.shape[1] != cw.shape[1]:
+                raise InputShapeError("skin", f"((N={N}, J), (M={M}, J))", (pw.shape, cw.shape))
+            point_bone = np.argmax(pw, 1)
+            collider_bone = np.argmax(cw[usable], 1)
+            skin_part = np.empty((B, N, k_skin), np.int64)
+            # the nearest _SKIN_SCAN collider vertices, in order, hold the k_skin nearest of another
+            # bone for most points; the rest get a KD-tree per dominant bone (the exact search)
+            kk = int(min(_SKIN_SCAN, len(usable)))
+            for b in range(B):
+                scan = trees[b].query(points_rest[b], k=kk)[1].reshape(N, kk)  # (N, kk) into usable
+                other = collider_bone[scan] != point_bone[:, None]
+                enough = other.sum(1) >= k_skin
+                # first k_skin "other" columns of each row (stable sort puts them first, in order)
+                first = np.argsort(~other, axis=1, kind="stable")[:, :k_skin]
+                skin_part[b] = usable[np.take_along_axis(scan, first, 1)]
+                for bone in np.unique(point_bone[~enough]):  # one KD-tree per dominant bone (<= J)
+                    rows = np.flatnonzero((point_bone == bone) & ~enough)
+                    others = usable[collider_bone != bone]
+                    kb = int(min(k_skin, len(others)))
+                    got = others[cKDTree(collider_rest[b][others]).query(points_rest[b][rows], k=kb)[1].reshape(len(rows), kb)]
+                    skin_part[b, rows] = np.pad(got, ((0, 0), (0, k_skin - kb)), mode="edge")
+            parts.append(skin_part)
+            # Points that another part can reach when a joint bends: their rest-pose candidates
+            # cannot follow that part (it moves relative to the point), so the guard searches
+            # the region around them in every posed frame.
+            d_other = np.linalg.norm(points_rest[0] - collider_rest[0][skin_part[0, :, 0]], axis=-1)
+            dynamic_points = np.flatnonzero(d_other < DYNAMIC_RISK_M)
+            # the usable collider vertices within DYNAMIC_REGION_M of a dynamic point (one nearest
+            # query per collider vertex: ~5x faster than query_ball_point's lists, same set)
+            region = np.zeros(0, np.int64)
+            if len(dynamic_points):
+                d, _ = cKDTree(points_rest[0][dynamic_points]).query(collider_rest[0][usable], k=1, distance_upper_bound=DYNAMIC_REACH_M)
+                region = np.flatnonzero(d <= DYNAMIC_REGION_M)
+                # farther parts that a limb can bring in (a forearm against the back): within
+                # DYNAMIC_REACH_M, thinned to one vertex per DYNAMIC_VOXEL_M cell (fingers, head)
+                far = np.flatnonzero((d > DYNAMIC_REGION_M) & (d <= DYNAMIC_REACH_M))
+                if len(far) and DYNAMIC_VOXEL_M > 0:
+                    cell = np.floor(collider_rest[0][usable[far]] / DYNAMIC_VOXEL_M).astype(np.int64)
+                    far = far[np.unique(cell, axis=0, return_index=True)[1]]
+                region = np.union1d(region, far)
+            dynamic_region_ids = usable[region]
+        else:
+            dynamic_points, dynamic_region_ids = None, None
+        if frames is not None:
+            fp, fc = (_check_frames("frames[0]", frames[0]), _check_frames("frames[1]", frames[1]))
+            kk = int(min(k_frames, len(usable)))
+            parts += [
+                np.stack([usable[cKDTree(fc[b, t][usable]).query(fp[b, t], k=kk)[1].reshape(N, kk)] for b in range(B)])
+                for t in range(fp.shape[1])
+            ]
+        cand = np.concatenate(parts, axis=-1)  # (B, N, k_total) collider vertex ids
+        extra_ids = dynamic_region_ids if dynamic_region_ids is not None else np.zeros(0, np.int64)
+        # across a gap in the reference pose: opposing normal, point outside its plane, ahead
+        cj = np.stack([collider_rest[b][cand[b]] for b in range(B)])  # (B, N, k, 3)
+        nj = np.stack([n_rest[b][cand[b]] for b in range(B)])
+        rel = points_rest[:, :, None] - cj  # p - c_j
+        across = (
+            (np.einsum("bnc,bnkc->bnk", n0, nj) < _OPPOSING_COS)
+            & (np.einsum("bnkc,bnkc->bnk", rel, nj) > 0)
+            & (np.einsum("bnkc,bnc->bnk", rel, n0) < 0)
+        )
+        touched = np.unique(np.concatenate([cand.ravel(), extra_ids]))
+        ring_faces = None
+        if rings and not bnd.any():
+            # closed collider: the candidates' one-ring triangles, so their corners join the plan
+            ring_faces, _ = vertex_face_incidence(faces, M, touched)
+            touched = np.union1d(touched, faces[ring_faces].ravel())
+        collider_ids = touched
+        local = np.searchsorted(collider_ids, cand)
+        face_ids, inc = vertex_face_incidence(faces, M, collider_ids)
+        rings_table = None if ring_faces is None else _one_rings(np.searchsorted(collider_ids, faces[ring_faces]), len(collider_ids))
+        e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
+        reach = float(np.median(np.linalg.norm(e, axis=-1)))
+        has_dynamic = dynamic_points is not None and len(dynamic_points) > 0
+        return cls(
+            collider_ids=collider_ids,
+            candidates=local.astype(np.int32),
+            across=across,
+            face_ids=face_ids,
+            incidence=inc,
+            faces=faces,
+            orientation=orientation,
+            boundary=bnd[collider_ids] if bnd.any() else None,
+            reach_m=reach,
+            dynamic_points=dynamic_points if has_dynamic else None,
+            dynamic_region=np.searchsorted(collider_ids, dynamic_region_ids) if has_dynamic else None,
+            ring=rings_table[0] if rings_table else None,
+            ring_valence=rings_table[1] if rings_table else None,
+        )
+
+    def collider_planes(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The plan's collider vertices and unit outward normals as coordinate planes.
+
+        collider : (B, T, M, 3) float32, metres
+        returns  : points (3, B*T*S), normals (3, B*T*S) float32, frame-major
+        """
+        collider = _check_frames("collider", collider)
+        B, T, M, _ = collider.shape
+        if self.faces.max() >= M:
+            raise InputShapeError("collider", f"(B, T, >{self.faces.max()}, 3)", collider.shape)
+        BT = B * T
+        C = _planes(collider)  # (3, BT*M)
+        frame = (np.arange(BT, dtype=np.intp) * M)[None, :]
+        # corner[i][c]: coordinate c of corner i of the plan's faces, (Fs, BT)
+        f = self.faces[self.face_ids]
+        corner = [[np.take(C[c], f[:, i, None] + frame) for c in range(3)] for i in range(3)]
+        e1 = [corner[1][c] - corner[0][c] for c in range(3)]
+        e2 = [corner[2][c] - corner[0][c] for c in range(3)]
+        # area-weighted face normals (v1 - v0) x (v2 - v0), laid out (Fs, 3, BT)
+        fn = np.stack([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]], axis=1)
+        # n[s, c, bt] = sum_f incidence[s, f] fn[f, c, bt]
+        vn = (self.incidence @ fn.reshape(len(f), 3 * BT)).reshape(-1, 3, BT)
+        vn *= self.orientation / np.maximum(np.sqrt(np.einsum("scb,scb->sb", vn, vn)), 1e-20)[:, None]
+        S = len(self.collider_ids)
+        normals = np.ascontiguousarray(vn.transpose(1, 2, 0)).reshape(3, BT * S)
+        points = np.take(C, (frame.T + self.collider_ids[None]).reshape(-1), axis=1)
+        return points, normals.astype(np.float32, copy=False)
+
+    def collider_frames(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The plan's collider vertices and their area-weighted unit outward normals per frame.
+
+        collider : (B, T, M, 3) float32, metres, posed collider vertices
+        returns  : points (B, T, S, 3), normals (B, T, S, 3) float32
+        """
+        B, T = np.shape(collider)[:2]
+        pts, nrm = self.collider_planes(collider)
+        S = len(self.collider_ids)
+        return (np.moveaxis(pts.reshape(3, B, T, S), 0, -1), np.moveaxis(nrm.reshape(3, B, T, S), 0, -1))
