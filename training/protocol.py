@@ -94,3 +94,17 @@ def case_motion(body: BodyModel, case: Case, clip: Clip | None = None) -> tuple[
     rotations, translation = rotations[0, :n], translation[0, :n]
     rotations = lift_arms(body, shape, rotations, translation)[0]
     return shape, PoseSequence(rotations, translation, clip.fps), case.start
+
+
+def lead_in_motion(rotations: np.ndarray, translation: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Poses from the rest pose to a clip's first pose, for a simulation to start from the rest
+    drape: rotations s * r_0 (each joint's geodesic from identity), s = smoothstep(k / frames),
+    k = 0..frames-1; translation held at t_0 (moving the rest drape up to the clip's height is a
+    rigid shift, not dynamics).
+
+    rotations : (T, J, 3) axis-angle radians ; translation : (T, 3) metres
+    returns   : (frames, J, 3), (frames, 3) float32 (frame 0 is the rest pose, shifted)
+    """
+    u = np.arange(frames) / max(frames, 1)
+    s = u * u * (3.0 - 2.0 * u)
+    return (s[:, None, None] * rotations[0][None]).astype(np.float32), np.repeat(translation[:1], frames, 0).astype(np.float32)

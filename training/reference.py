@@ -60,6 +60,7 @@ import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, linear_blend_skinning
 from inference.garment import GarmentAsset
+from training.protocol import lead_in_motion
 
 log = logging.getLogger(__name__)
 
@@ -139,17 +140,6 @@ def waistband_vertices(asset: GarmentAsset) -> np.ndarray:
     loops = {lab: ids[label[ids] == lab] for lab in np.unique(label[ids])}
     z = np.asarray(asset.rest_vertices)[:, 2]
     return max(loops.values(), key=lambda v: z[v].mean()).astype(np.int64)
-
-
-def lead_in_motion(rotations: np.ndarray, translation: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Poses from the rest pose to a clip's first pose: each joint's axis-angle s * r_0 with
-    s = smoothstep(k / frames), k = 0..frames-1; translation held at t_0.
-
-    rotations : (T, J, 3) radians ; translation : (T, 3) metres ; returns (frames, J, 3), (frames, 3)
-    """
-    u = np.arange(frames) / max(frames, 1)
-    s = u * u * (3.0 - 2.0 * u)
-    return (s[:, None, None] * rotations[0][None]).astype(np.float32), np.repeat(translation[:1], frames, 0).astype(np.float32)
 
 
 @dataclass

@@ -74,6 +74,7 @@ from scipy.spatial import cKDTree
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, linear_blend_skinning
 from inference.mesh import vertex_normals
 from inference.metrics import self_intersecting_vertices
+from training.protocol import lead_in_motion
 from training.physics import (
     GRAVITY_M_S2,
     ClothGeometry,
@@ -803,19 +804,6 @@ def quasi_static_drape(asset, body: BodyModel, phenotypes: np.ndarray, settings:
     shape = body.shape(phenotypes[None])
     x0 = asset.retarget_fit(body.hm08_vertices(shape))[0]
     return settle(cloth, x0, shape.rest_vertices[0], body.faces, settings)
-
-
-def lead_in_motion(rotations: np.ndarray, translation: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Poses from the rest pose to a clip's first pose: rotations s * r_0 (each joint's geodesic
-    from identity), s = smoothstep(k / frames), k = 0..frames-1; translation held at t_0 (moving
-    the rest drape up to the clip's height is a rigid shift, not dynamics).
-
-    rotations : (T, J, 3) axis-angle radians ; translation : (T, 3) metres
-    returns   : (frames, J, 3), (frames, 3) float32 (frame 0 is the rest pose, shifted)
-    """
-    u = np.arange(frames) / max(frames, 1)
-    s = u * u * (3.0 - 2.0 * u)
-    return (s[:, None, None] * rotations[0][None]).astype(np.float32), np.repeat(translation[:1], frames, 0).astype(np.float32)
 
 
 def simulate_sequence(
