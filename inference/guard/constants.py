@@ -14,10 +14,13 @@ _OPPOSING_COS = -0.5
 DYNAMIC_RISK_M = 0.30
 DYNAMIC_REGION_M = 0.05
 # ... and among the farther collider vertices within DYNAMIC_REACH_M (a forearm that swings
-# against the back, a hand against the thigh), thinned to one per DYNAMIC_VOXEL_M cell. Measured
-# on 01_01 (learned default, v2 models, every 16th frame, clean inside % after the guard):
-# neutral T-shirt 0.192 -> 0.060, heaviest adult 1.12 -> 0.61, for +1.4-2 ms per garment-frame
-# (docs/benchmarks.md, Serving: 3 cm cells keep most of that for a third of the cost).
+# against the back, a hand against the thigh), thinned to one per DYNAMIC_VOXEL_M cell. On the
+# validation clip 02_02 (a walk; `python tools/guard_reach_validation.py`, retarget T-shirt) they
+# change nothing: the same inside % without them, at 2 cm and at 3 cm cells, neutral and heaviest
+# (the plan's region grows from 1938 to 3046 vertices): no limb comes against the torso there, so
+# validation neither justifies nor refutes them; they are kept for motions where one does, seen
+# on 01_01 (a test clip, reported only: learned v2 models, heaviest adult 1.12 -> 0.61 % clean
+# inside, +1.4-2 ms per garment-frame; docs/benchmarks.md).
 DYNAMIC_REACH_M = 0.30
 DYNAMIC_VOXEL_M = 0.02
 # Per-frame nearest candidates per dynamic point.
