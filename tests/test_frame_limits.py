@@ -45,3 +45,27 @@ def test_slow_bvh_is_refused_before_retargeting(client):
     r = client.post("/v1/drape", json=body)
     assert r.status_code == 422, r.text
     assert "exceed the limit" in r.text
+
+
+def test_jobs_count_bvh_and_amc_frames_from_their_headers_before_the_202(client, settings):
+    """A BVH that declares more frames than a job may have (and an AMC with too many frame lines)
+    is refused before the 202, not after minutes in the queue."""
+    frames = settings.job_max_frames * 2 + 1
+    bvh = ("HIERARCHY\nROOT Hips\n{\n  OFFSET 0 0 0\n  CHANNELS 3 Xrotation Yrotation Zrotation\n  End Site\n  {\n    OFFSET 0 1 0\n  }\n}\n"
+           f"MOTION\nFrames: {frames}\nFrame Time: 0.0333333\n" + "0 0 0\n" * 3)
+    body = {"garments": [{"id": "tshirt"}], "format": "npz", "options": {"include_body": False}}
+    r = client.post("/v1/jobs", json={**body, "motion": {"type": "bvh", "bvh": bvh}})
+    assert r.status_code == 422 and r.json()["errors"][0]["pointer"] == "/motion/bvh" and "exceed the limit" in r.text, r.text
+    amc = ":FULLY-SPECIFIED\n:DEGREES\n" + "".join(f"{i}\nroot 0 0 0 0 0 0\n" for i in range(1, frames + 1))
+    r = client.post("/v1/jobs", json={**body, "motion": {"type": "asf_amc", "asf": ":version 1.10\n", "amc": amc, "fps": 30.0}})
+    assert r.status_code == 422 and r.json()["errors"][0]["pointer"] == "/motion/amc", r.text
+    assert client.get("/readyz").json()["queue_depth"] == 0
+
+
+def test_header_frame_counts():
+    from inference.motion.asfamc import amc_frames
+    from inference.motion.bvh import bvh_frames
+
+    assert bvh_frames("HIERARCHY\nMOTION\nFrames: 12\nFrame Time: 0.008333\n1 2 3\n") == (12, 1 / 0.008333)
+    assert bvh_frames("HIERARCHY\nno motion") is None
+    assert amc_frames(":DEGREES\n1\nroot 0 0 0\n2\nroot 1 1 1\n") == 2

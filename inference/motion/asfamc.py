@@ -19,6 +19,7 @@ Conventions (Acclaim / CMU, column vectors):
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -220,6 +221,14 @@ def parse_asf(text: str, *, unit_scale: float | None = None) -> AsfSkeleton:
         axes[j] = _axis_frame(angles, axis_order, axis_line, angle_scale)
         dofs.append(b["dof"])
     return AsfSkeleton(tuple(order), parents, heads, tails, axes, tuple(dofs), float(unit_scale), angle_scale)
+
+
+_FRAME_LINE = re.compile(r"^\s*\d+\s*$", re.MULTILINE)
+
+
+def amc_frames(text: str) -> int:
+    """Frames in an AMC text, counted from its frame-number lines alone (no parsing)."""
+    return len(_FRAME_LINE.findall(text))
 
 
 def parse_amc(

@@ -13,6 +13,7 @@ Units: ``unit_scale`` metres per file unit, or None to infer it from the rest sk
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +109,22 @@ def infer_unit_scale(span: float) -> float:
             f"cannot infer BVH units from a rest skeleton {span:.3g} units tall; pass unit_scale"
         )
     return scale
+
+
+_HEADER = re.compile(r"^\s*MOTION\s*\n\s*Frames:\s*(\d+)\s*\n\s*Frame\s+Time:\s*([0-9.eE+-]+)", re.MULTILINE)
+
+
+def bvh_frames(text: str) -> tuple[int, float] | None:
+    """(frames, fps) from a BVH text's MOTION header alone (a regex scan: no parsing), or None
+    where it has no readable header (``parse_bvh`` then says what is wrong)."""
+    m = _HEADER.search(text)
+    if m is None:
+        return None
+    try:
+        frames, frame_time = int(m.group(1)), float(m.group(2))
+    except ValueError:
+        return None
+    return (frames, 1.0 / frame_time) if frame_time > 0 else None
 
 
 def parse_bvh(

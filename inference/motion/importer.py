@@ -21,8 +21,8 @@ import numpy as np
 
 from inference.body import PHENOTYPE_LABELS, BodyModel, BodyShape
 from inference.errors import InputValueError
-from inference.motion.asfamc import CMU_FPS, parse_amc, parse_asf
-from inference.motion.bvh import parse_bvh
+from inference.motion.asfamc import CMU_FPS, amc_frames, parse_amc, parse_asf
+from inference.motion.bvh import bvh_frames, parse_bvh
 from inference.motion.clips import ClipLibrary, adapt_clip
 from inference.motion.resample import resample_motion, resampled_frame_count
 from inference.motion.retarget import retarget
@@ -98,7 +98,8 @@ class MotionImporter:
 
     def output_frames(self, spec: MotionSpec, fps: float, limits: MotionLimits) -> int | None:
         """Frames of the imported motion at ``fps``, from the input alone (a clip to its end is
-        cut at the limit); None for BVH and AMC, known once parsed, or an unknown clip."""
+        cut at the limit; BVH from its MOTION header, AMC from its frame-number lines); None for
+        an unknown clip or a BVH without a readable header (parsing will say why)."""
         if isinstance(spec, ClipSpec):
             if spec.clip not in self.clips.ids():
                 return None
@@ -109,15 +110,20 @@ class MotionImporter:
             return frames if spec.duration_s is not None else min(frames, limits.max_frames)
         if isinstance(spec, PosesSpec):
             return resampled_frame_count(len(spec.rotations), spec.fps, fps)
-        return None
+        if isinstance(spec, BvhSpec):
+            header = bvh_frames(spec.text)
+            return None if header is None else resampled_frame_count(header[0], header[1], fps)
+        return resampled_frame_count(amc_frames(spec.amc), spec.fps, fps)
 
     def check(self, spec: MotionSpec, fps: float, limits: MotionLimits) -> None:
-        """The cheap refusals, before any work: an unknown clip; a pose sequence whose output
-        frame count exceeds the limit."""
+        """The cheap refusals, before any work (the job route's, before its 202): an unknown
+        clip; a motion whose output frame count, from the input alone, exceeds the limit."""
         if isinstance(spec, ClipSpec) and spec.clip not in self.clips.ids():
             raise InputValueError("/motion/clip", f"unknown clip {spec.clip!r}; see GET /v1/motions")
-        if isinstance(spec, PosesSpec):
-            check_frames(resampled_frame_count(len(spec.rotations), spec.fps, fps), fps, limits, "/motion/fps")
+        frames = self.output_frames(spec, fps, limits)
+        if frames is not None:
+            field = {ClipSpec: "/motion/duration_s", PosesSpec: "/motion/fps", BvhSpec: "/motion/bvh", AsfAmcSpec: "/motion/amc"}[type(spec)]
+            check_frames(frames, fps, limits, field)
 
     # ------------------------------------------------------------------ import
     def import_motion(self, spec: MotionSpec, shape: BodyShape, fps: float, limits: MotionLimits) -> PoseSequence:
