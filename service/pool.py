@@ -282,7 +282,7 @@ class WorkerPool:
         """422 when the drape is estimated to outlast the request deadline: the expected wait plus
         frames x garments x the measured seconds per garment-frame (audit D10). Such a request
         belongs on POST /v1/jobs. No estimate before the first measured batch, or where the
-        frame count is only known after the motion is imported (BVH)."""
+        frame count is not known from the request (a BVH without a readable MOTION header)."""
         if frames is None or self._gf_s == 0:
             return
         work_s = frames * garments * self._gf_s

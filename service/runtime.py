@@ -149,8 +149,8 @@ class Runtime:
         return AsfAmcSpec(m.asf, m.amc, m.fps, m.units)
 
     def output_frames(self, request: DrapeRequest, limits: RequestLimits | None = None) -> int | None:
-        """The number of frames the request's drape will have, from the request alone; None for
-        BVH, known only once parsed."""
+        """The number of frames the request's drape will have, from the request alone
+        (``MotionImporter.output_frames``; None for a BVH without a readable MOTION header)."""
         limits = limits or RequestLimits.drape(self.settings)
         return self.motions.output_frames(self.motion_spec(request), request.options.fps, limits.motion)
 
