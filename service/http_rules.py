@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import hashlib
 import json
 
 from service.errors import PROBLEM_JSON
@@ -93,8 +94,6 @@ class CatalogCaching:
 
 def catalog_etag(api_version: str, runtime, path: str) -> str:
     """A strong tag: the catalog's bytes are the same for the same inputs."""
-    import hashlib
-
     defaults = json.dumps(runtime.defaults.as_dict(), sort_keys=True)
     digest = hashlib.sha256("\n".join([api_version, runtime.assets.combined, defaults, path]).encode()).hexdigest()
     return f'"{digest[:32]}"'

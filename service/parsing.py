@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from inference.defaults import DefaultMethods
 from service.cache import request_key
 from service.errors import ProblemException
+from service.jobs import MEDIA_TYPES
 from service.schemas import DrapeRequest
 
 INLINE_BYTES = 256 * 1024
@@ -38,7 +39,7 @@ class KeyContext:
     accept: tuple[str, ...] | None = None
 
 
-MEDIA_FORMATS = {"model/gltf-binary": "glb", "application/x-npz": "npz"}
+MEDIA_FORMATS = {media: fmt for fmt, media in MEDIA_TYPES.items()}  # media type -> the request's format
 
 
 def accepted_formats(accept: str | None) -> tuple[str, ...] | None:

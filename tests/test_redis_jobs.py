@@ -73,6 +73,19 @@ def _wait(client, url, states=("succeeded", "failed", "cancelled"), timeout_s=12
     return job
 
 
+def _wait_for_progress(client, url, timeout_s=60):
+    """Until the job has reported its first chunk (it is mid-way)."""
+    t0 = time.monotonic()
+    while client.get(url).json()["progress"]["frames_done"] == 0:
+        assert time.monotonic() - t0 < timeout_s
+        time.sleep(0.02)
+
+
+def _horses(worker: subprocess.Popen) -> list[str]:
+    """The RQ worker's work-horse pids (its children)."""
+    return subprocess.run(["pgrep", "-P", str(worker.pid)], capture_output=True, text=True).stdout.split()
+
+
 def test_jobs_run_on_a_separate_rq_worker(redis_settings, runtime):
     with TestClient(create_app(redis_settings, runtime), raise_server_exceptions=False) as c:
         assert c.get("/readyz").json()["jobs_backend"] == "redis"
@@ -104,16 +117,13 @@ def test_jobs_run_on_a_separate_rq_worker(redis_settings, runtime):
 def test_a_killed_work_horse_is_retried(redis_settings, runtime):
     """SIGKILL of the process running the job: RQ records the failure and re-runs it (Retry)."""
     with TestClient(create_app(redis_settings, runtime), raise_server_exceptions=False) as c:
-        # per-frame dynamics: the job runs in chunks, so it is caught mid-way (learned dynamics run whole)
+        # a job runs in chunks, so it is caught mid-way
         options = {"include_body": False, "guard": True, "fit": "retarget", "dynamics": "none"}
         url = c.post("/v1/jobs", json={**BODY, "options": options}).headers["location"]
         worker = _worker(redis_settings)
         try:
-            t0 = time.monotonic()
-            while c.get(url).json()["progress"]["frames_done"] == 0:
-                assert time.monotonic() - t0 < 60
-                time.sleep(0.02)
-            horses = subprocess.run(["pgrep", "-P", str(worker.pid)], capture_output=True, text=True).stdout.split()
+            _wait_for_progress(c, url)
+            horses = _horses(worker)
             assert horses, "no work-horse"
             os.kill(int(horses[0]), signal.SIGKILL)
             job = _wait(c, url)
@@ -159,12 +169,9 @@ def test_a_job_whose_worker_died_is_requeued_within_a_minute(redis_settings, run
         url = c.post("/v1/jobs", json=long).headers["location"]
         first = _worker(s)
         try:
-            t0 = time.monotonic()
-            while c.get(url).json()["progress"]["frames_done"] == 0:
-                assert time.monotonic() - t0 < 60
-                time.sleep(0.02)
+            _wait_for_progress(c, url)
         finally:
-            horses = subprocess.run(["pgrep", "-P", str(first.pid)], capture_output=True, text=True).stdout.split()
+            horses = _horses(first)
             for pid in [first.pid, *map(int, horses)]:  # the worker and its work-horse (which has a session of its own)
                 os.kill(pid, signal.SIGKILL)
             first.wait(10)

@@ -5,12 +5,12 @@ Run: ``python -m training.manifest`` (after any asset build).
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import json
 import subprocess
 from pathlib import Path
 
+from inference.asset_digest import file_sha256
 from training.assets.anny_model import REPO_ROOT
 
 ASSETS = REPO_ROOT / "assets"
@@ -24,12 +24,7 @@ BUILD_COMMANDS = [
 ]
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+sha256 = file_sha256  # the runtime's own hash of a file (versions come from the same bytes)
 
 
 def git_commit() -> str:

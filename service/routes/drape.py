@@ -6,12 +6,12 @@ from fastapi.responses import Response
 
 from service.cache import etag_matches, etag_of, wildcard
 from service.errors import ProblemException
+from service.jobs import MEDIA_TYPES
 from service.parsing import KeyContext, accepted_formats, not_acceptable, request_body_openapi
 from service.schemas import BINARY as _BINARY, DRAPE_EXAMPLE
 
 router = APIRouter(prefix="/v1", tags=["drape"])
 
-MEDIA_TYPES = {"glb": "model/gltf-binary", "npz": "application/x-npz"}
 _PROBLEM = {"content": {"application/problem+json": {}}}
 
 
