@@ -22,7 +22,7 @@ from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
 from service.parsing import RequestParser
 from service.pool import WorkerPool
-from service.routes import body_model, drape, garments, health, jobs, metrics, motions
+from service.routes import bodies, body_model, drape, garments, health, jobs, metrics, motions
 from service.runtime import Runtime
 from service.schemas import DrapeRequest, Problem
 
@@ -114,7 +114,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     install_problem_handlers(app)
     # Middleware, innermost first: body size -> JSON only -> catalog caching -> auth -> CORS -> HEAD as GET -> request context (outermost).
     install_body_size_limit(app, settings.max_request_bytes, {"/v1/jobs": settings.job_max_request_bytes})
-    app.add_middleware(JsonOnly, paths=frozenset({"/v1/drape", "/v1/jobs"}))
+    app.add_middleware(JsonOnly, paths=frozenset({"/v1/drape", "/v1/jobs", "/v1/bodies/fit"}))
     app.add_middleware(CatalogCaching)  # inside the auth: a 304 is an answer too
     keys = settings.api_key_set()
     app.state.auth_on = bool(keys)  # job quotas are per key only where keys are checked
@@ -127,7 +127,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
                            expose_headers=["etag", "location", "retry-after", "x-request-id", "x-frames", "x-cache", "server-timing"], max_age=600)
     app.add_middleware(HeadAsGet)
     app.add_middleware(RequestContext, metrics=app.state.metrics)
-    for module in (garments, body_model, motions, drape, jobs, health, metrics):
+    for module in (garments, body_model, bodies, motions, drape, jobs, health, metrics):
         app.include_router(module.router, responses=COMMON_ERRORS)
     app.openapi = lambda: problem_openapi(app)
     return app

@@ -153,6 +153,8 @@ class ThreadWorker:
 
         if message[0] == "drape":
             return self.runtime.run_batch(message[1])
+        if message[0] == "body":
+            return self.runtime.bodies.run(message[1], message[2])
         try:
             return execute_job(self.runtime, message[1], message[2], on_progress)
         except Exception as exc:  # noqa: BLE001
@@ -167,7 +169,7 @@ class ThreadWorker:
 
 @dataclass
 class _Item:
-    kind: str  # "drape" | "job"
+    kind: str  # "drape" | "job" | "body"
     payload: tuple
     future: asyncio.Future
     deadline: float  # loop time
@@ -311,6 +313,25 @@ class WorkerPool:
             if not item.future.done():
                 item.future.cancel()  # the scheduler drops it, or discards its result
 
+    async def body(self, operation: str, request):
+        """A body fit or measurement ('fit' | 'measure', ``service.bodies``) on a worker: short
+        interactive work, so it goes to the front of the queue; 503 when the queue is full."""
+        self.admit()
+        loop = asyncio.get_running_loop()
+        timeout_s = self.settings.request_timeout_s
+        item = _Item("body", (operation, request), loop.create_future(), loop.time() + timeout_s, enqueued=loop.time())
+        self._enqueue(item, front=True)
+        try:
+            outcome = await asyncio.wait_for(asyncio.shield(item.future), timeout_s)
+        except asyncio.TimeoutError:
+            raise ProblemException(504, "Deadline exceeded", f"the body did not finish within {timeout_s:g} s") from None
+        finally:
+            if not item.future.done():
+                item.future.cancel()
+        if isinstance(outcome, ProblemDetail):
+            raise outcome.exception()
+        return outcome
+
     async def run_job(self, request: DrapeRequest, result_path: Path, on_progress: Callable[[int, int], bool] | None = None):
         """Run a job on a worker (not merged with other work): a JobOutcome, None (cancelled)
         or a ProblemDetail. Raises WorkerCrashed when the job crashed its worker twice."""
@@ -403,7 +424,7 @@ class WorkerPool:
                     self._gf_s = gf_s if self._gf_s == 0 else 0.8 * self._gf_s + 0.2 * gf_s
             else:
                 item = batch[0]
-                outcome = await asyncio.to_thread(worker.call, ("job",) + item.payload, item.on_progress)
+                outcome = await asyncio.to_thread(worker.call, (item.kind,) + item.payload, item.on_progress)
                 _settle(item, outcome)
             self._batch_s = 0.8 * self._batch_s + 0.2 * (time.perf_counter() - t0)
         except WorkerCrashed as exc:

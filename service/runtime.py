@@ -27,6 +27,7 @@ from inference.learned import LearnedModels
 from inference.motion.clips import ClipLibrary
 from inference.motion.importer import AsfAmcSpec, BvhSpec, ClipSpec, MotionImporter, MotionLimits, MotionSpec, PosesSpec, shape_of
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape_chunks, without_root_travel
+from service.bodies import BodyService
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
 from service.schemas import AsfAmcMotion, BvhMotion, ClipMotion, DrapeRequest, PoseMotion
@@ -116,6 +117,14 @@ class Runtime:
         self.assets = assets or AssetDigest.of(settings.assets_dir)  # content versions: cache keys, ETags, metadata
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
         self.motions = MotionImporter(body, clips)
+        self._bodies: BodyService | None = None
+
+    @property
+    def bodies(self) -> BodyService:
+        """Body fits and measurements (built on first use: only workers measure)."""
+        if self._bodies is None:
+            self._bodies = BodyService(self.body)
+        return self._bodies
 
     @classmethod
     def load(cls, settings: Settings, learned: bool = True) -> "Runtime":

@@ -34,6 +34,12 @@ class Phenotypes(_Strict):
     proportions: float = _phenotype("proportions", 0.5, "0 ideal, 1 uncommon proportions")
 
 
+class PhenotypeQuery(Phenotypes):
+    """The phenotypes as query parameters (numbers parsed from the query string)."""
+
+    model_config = ConfigDict(extra="forbid", strict=False)
+
+
 class BodySpec(_Strict):
     phenotypes: Phenotypes = Field(default_factory=Phenotypes)
 
@@ -178,6 +184,68 @@ class BodyModelResponse(BaseModel):
     pose_format: str
     vertices: int
     faces: int
+
+
+def _tape(name: str, lo: float, hi: float, iso: str, example: float):
+    return Field(ge=lo, le=hi, allow_inf_nan=False, examples=[example], description=f"{iso}, centimetres [{lo:g}, {hi:g}]")
+
+
+class BodyFitRequest(_Strict):
+    """Tape measurements of a shopper (ISO 8559-1 definitions; ``GET /v1/bodies/measurements``
+    says how the service takes them on its bodies)."""
+
+    height_cm: float = _tape("height", 100, 250, "stature: crown to floor", 175)
+    chest_cm: float = _tape("chest", 50, 200, "chest girth under the armpits, over the fullest part of the chest", 98)
+    waist_cm: float = _tape("waist", 40, 200, "waist girth at the natural (narrowest) waist", 84)
+    hips_cm: float = _tape("hips", 50, 200, "hip girth at the fullest part of the buttocks", 102)
+    inseam_cm: float = _tape("inseam", 40, 130, "inside leg length: crotch to floor", 80)
+    weight_kg: float | None = Field(None, ge=25, le=250, allow_inf_nan=False, examples=[75],
+                                    description="body mass, kilograms [25, 250] (optional: fitted when given)")
+    gender: Literal["female", "male"] | None = Field(None, description="optional: keeps the gender phenotype on its half "
+                                                                          "(male 0-0.5, female 0.5-1); without it the fit may choose any")
+    tolerance_cm: float = Field(1.0, ge=0.2, le=10.0, allow_inf_nan=False,
+                                description="a measurement the closest adult body misses by more is a 422 naming it (the weight's "
+                                            "tolerance is the same number in kg)")
+
+
+class BodyMeasurements(BaseModel):
+    """What a body measures (ISO 8559-1, taken on the rest body: see ``standard``)."""
+
+    height_cm: float
+    chest_cm: float
+    waist_cm: float
+    hips_cm: float
+    inseam_cm: float
+    weight_kg: float = Field(description="mesh volume x the whole-body density (985 kg/m^3)")
+
+
+class BodyMeasurementResiduals(BaseModel):
+    """Fitted minus asked, per measurement (centimetres; kilograms for the weight, null when not asked)."""
+
+    height_cm: float
+    chest_cm: float
+    waist_cm: float
+    hips_cm: float
+    inseam_cm: float
+    weight_kg: float | None = None
+
+
+class BodyMeasurementsResponse(BaseModel):
+    phenotypes: Phenotypes
+    measurements: BodyMeasurements
+    standard: str = Field(description="how each measurement is taken on the mesh")
+
+
+class BodyFitResponse(BaseModel):
+    """The adult body that has the asked measurements: use ``phenotypes`` as a drape request's
+    ``body.phenotypes``."""
+
+    phenotypes: Phenotypes
+    measurements: BodyMeasurements = Field(description="what the fitted body measures")
+    residuals: BodyMeasurementResiduals
+    tolerance_cm: float = Field(description="every residual is within this (else the answer is a 422 naming the measurement)")
+    tolerance_kg: float
+    standard: str
 
 
 class HealthResponse(BaseModel):

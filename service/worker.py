@@ -116,6 +116,8 @@ def serve_pipe(conn, settings, parent_pid: int | None = None) -> None:
         kind = message[0]
         if kind == "drape":
             conn.send(("done", runtime.run_batch(message[1])))
+        elif kind == "body":
+            conn.send(("done", runtime.bodies.run(message[1], message[2])))
         elif kind == "job":
             def progress(done: int, total: int) -> bool:
                 conn.send(("progress", done, total))
