@@ -27,6 +27,24 @@ from inference.errors import InputShapeError, UnknownAssetError
 
 HM08_VERTEX_COUNT = 19158
 CATEGORIES = ("top", "bottom", "dress", "outer")
+
+
+def srgb_to_linear(hex_colour: str) -> list[float]:
+    """'#rrggbb' sRGB -> linear RGB in [0, 1] (IEC 61966-2-1 transfer function)."""
+    c = np.array([int(hex_colour[i:i + 2], 16) for i in (1, 3, 5)], np.float64) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).tolist()
+
+
+def pbr_appearance(entry: dict) -> dict:
+    """A garment.json "appearance" (``training.assets.appearance``) -> the glTF PBR values of
+    ``inference.export.GarmentTrack.appearance``: linear base colour, roughness, and a sheen of
+    the base colour lightened toward white by ``sheen_lighten``."""
+    base = np.asarray(srgb_to_linear(entry["color_srgb"]))
+    out = {"base_color": base.tolist(), "roughness": float(entry.get("roughness", 0.8))}
+    if "sheen_lighten" in entry:
+        out["sheen_color"] = (base + float(entry["sheen_lighten"]) * (1.0 - base)).tolist()
+        out["sheen_roughness"] = float(entry.get("sheen_roughness", 0.5))
+    return out
 # hm08 axis n (x, y, z; Y-up) is anny axis HM08_AXIS_IN_ANNY[n]; anny = 0.1 * (x, -z, y).
 HM08_AXIS_IN_ANNY = (0, 2, 1)
 
@@ -97,6 +115,12 @@ class GarmentAsset:
     @property
     def num_vertices(self) -> int:
         return len(self.vertices)
+
+    @property
+    def appearance(self) -> dict | None:
+        """glTF PBR values of the garment's look (``pbr_appearance``), None when garment.json has none."""
+        entry = self.metadata.get("appearance")
+        return pbr_appearance(entry) if entry else None
 
     @classmethod
     def load(cls, directory: Path | str) -> "GarmentAsset":

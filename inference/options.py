@@ -37,12 +37,18 @@ def collisions_from_flags(guard: bool = True, guard_check: bool = True, guard_ex
 
 
 class DrapeOptions(BaseModel):
-    """What a drape runs, and (``fps``, ``include_body``) what its output holds."""
+    """What a drape runs, and (``fps``, ``include_body``, ``normals``, ``compression``) what its output holds."""
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
     fps: float = Field(30.0, ge=1.0, le=120.0, allow_inf_nan=False, description="output frame rate")
     include_body: bool = Field(True, description="add the posed body to the output")
+    normals: bool = Field(True, description="glb: smooth per-frame vertex normals for the garments (quantized, +4 bytes per "
+                                            "vertex per frame) and the body; false: players shade flat (smaller file)")
+    compression: Literal["none", "meshopt"] = Field(
+        "none", description="glb: 'meshopt' encodes the buffers with EXT_meshopt_compression (decoded by three.js with "
+        "MeshoptDecoder, model-viewer, Babylon.js; not by Blender 3.x): several times smaller, gzip still helps on top; "
+        "'none' (default) plays in every glTF reader")
     fit: Literal["learned", "retarget", "none"] | None = Field(
         None,
         description="garment fit to the body shape, for every garment of the request: 'learned' = the .mhclo retarget + "
@@ -116,5 +122,6 @@ class DrapeOptions(BaseModel):
     def pipeline_key(self) -> tuple:
         """What the pipeline reads besides the per-garment methods (``fit`` and ``dynamics``
         resolve into those, ``inference.defaults.resolve_methods``): drapes with equal keys and
-        equal methods may share one call. Not the output options ``fps`` and ``include_body``."""
+        equal methods may share one call. Not the output options ``fps``, ``include_body``,
+        ``normals`` and ``compression``."""
         return (self.collisions, self.margin_m, self.layer_gap_m, self.lift_arms)

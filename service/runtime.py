@@ -220,7 +220,8 @@ class Runtime:
         }
         tracks = [
             GarmentTrack(name=g.asset.id, vertices=g.vertices, faces=g.asset.faces, uvs=g.asset.uvs, face_uvs=g.asset.face_uvs,
-                         metadata={"layer": g.asset.layer, "category": g.asset.category, "fit": g.method.fit, "dynamics": g.method.dynamics})
+                         metadata={"layer": g.asset.layer, "category": g.asset.category, "fit": g.method.fit, "dynamics": g.method.dynamics},
+                         appearance=g.asset.appearance)
             for g in result.garments
         ]
         body_track = None
@@ -232,7 +233,9 @@ class Runtime:
             )
         if request.format == "glb":  # (the npz writer records units, axes, fps and garments itself)
             metadata.update(units="metres, seconds", axes="Y-up (glTF)", garments=[g.asset.id for g in result.garments], fps=motion.fps)
-            payload = write_glb(tracks, body_track, motion.fps, metadata=metadata)
+            # the rest body's soles on the floor (y = 0)
+            payload = write_glb(tracks, body_track, motion.fps, metadata=metadata, floor_z=float(shape.rest_vertices[0, :, 2].min()),
+                                normals=o.normals, compression=o.compression)
         else:
             payload = write_npz(tracks, body_track, motion.fps, metadata=metadata)
         timings = {**result.timings_ms, "export": (time.perf_counter() - t_export) * 1e3, "total": (time.perf_counter() - p.t0) * 1e3}

@@ -246,13 +246,27 @@ def test_retarget_extremes_mostly_outside(catalog, body):
 
 
 # ------------------------------------------------------------------------------ glb
+def glb_json(path) -> str:
+    data = path.read_bytes()
+    (length,) = np.frombuffer(data[12:16], np.uint32)
+    return data[20:20 + int(length)].decode()
+
+
 def test_template_glb(garment):
+    """The template on the floor (lifted by the neutral body's sole height), in its own colour, not metal."""
     scene = trimesh.load(garment.directory / "template.glb", force="scene")
     (mesh,) = scene.geometry.values()
     assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
     assert len(mesh.faces) == len(garment.faces)
-    yup = np.stack([garment.vertices[:, 0], garment.vertices[:, 2], -garment.vertices[:, 1]], 1)
-    np.testing.assert_allclose(mesh.bounds, np.stack([yup.min(0), yup.max(0)]), atol=1e-5)
+    floor_z = float(BodyModel.load().shape(NEUTRAL_PHENOTYPES[None]).rest_vertices[0, :, 2].min())
+    yup = np.stack([garment.vertices[:, 0], garment.vertices[:, 2] - floor_z, -garment.vertices[:, 1]], 1)
+    np.testing.assert_allclose(scene.bounds, np.stack([yup.min(0), yup.max(0)]), atol=1e-5)
+    gltf = json.loads(glb_json(garment.directory / "template.glb"))
+    (material,) = gltf["materials"]
+    pbr = material["pbrMetallicRoughness"]
+    assert pbr["metallicFactor"] == 0.0 and 0.5 <= pbr["roughnessFactor"] <= 1.0
+    np.testing.assert_allclose(pbr["baseColorFactor"][:3], garment.appearance["base_color"])
+    assert "NORMAL" in gltf["meshes"][0]["primitives"][0]["attributes"]
 
 
 def test_template_glb_passes_khronos_validator(catalog):

@@ -67,6 +67,8 @@ class GarmentTrack:
     uvs      : (Vt, 2) float32 or None, OBJ convention (v up)
     face_uvs : (F, 3) int32 or None, indices into uvs, one per face corner
     metadata : dict, JSON-serialisable (garment id, size, layer, ...)
+    appearance : dict or None, the garment's look (``garment.json`` "appearance": base_color
+               (3,) linear RGB 0-1, roughness 0-1, optional sheen_color, sheen_roughness)
     """
 
     name: str
@@ -75,6 +77,7 @@ class GarmentTrack:
     uvs: np.ndarray | None = None
     face_uvs: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
+    appearance: dict | None = None
 
     def __post_init__(self):
         p = f"garment[{self.name!r}]"
@@ -87,12 +90,26 @@ class GarmentTrack:
         _check_faces(f"{p}.faces", faces, vertices.shape[1])
         uvs, face_uvs = _check_uvs(p, self.uvs, self.face_uvs, faces)
         _check_json(f"{p}.metadata", self.metadata)
+        if self.appearance is not None:
+            _check_appearance(f"{p}.appearance", self.appearance)
         for key, value in (("vertices", vertices), ("faces", faces), ("uvs", uvs), ("face_uvs", face_uvs)):
             object.__setattr__(self, key, value)
 
     @property
     def num_frames(self) -> int:
         return self.vertices.shape[0]
+
+
+def _check_appearance(field_name: str, appearance: dict) -> None:
+    colours = [appearance.get("base_color")] + ([appearance["sheen_color"]] if "sheen_color" in appearance else [])
+    for c in colours:
+        c = np.asarray(c, np.float64)
+        if c.shape != (3,) or not np.all(np.isfinite(c)) or c.min() < 0 or c.max() > 1:
+            raise InputValueError(field_name, "colours must be 3 linear RGB values in [0, 1]")
+    for key in ("roughness", "sheen_roughness"):
+        v = appearance.get(key, 0.5)
+        if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+            raise InputValueError(field_name, f"{key} must be in [0, 1]")
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from inference.body import ASSETS_DIR, NEUTRAL_PHENOTYPES, BodyModel
 from inference.garment import bind_garment
 from inference.mesh import vertex_normals
+from training.assets import appearance
 from training.assets import garments_fit as fit
 from training.assets import garments_mesh as gm
 
@@ -312,7 +313,6 @@ def build_garment(spec: GarmentSpec, body: BodyModel, nb: NeutralBody, out_dir: 
     gdir = out_dir / spec.id
     gdir.mkdir(parents=True, exist_ok=True)
     save_npz_deterministic(gdir / "garment.npz", arrays)
-    (gdir / "template.glb").write_bytes(template_glb(arrays))
     meta = {
         "id": spec.id,
         "name": spec.name,
@@ -342,6 +342,7 @@ def build_garment(spec: GarmentSpec, body: BodyModel, nb: NeutralBody, out_dir: 
         },
     }
     (gdir / "garment.json").write_text(json.dumps(meta, indent=2) + "\n")
+    appearance.update(gdir, float(nb.vertices[:, 2].min()))  # "appearance" in garment.json, template.glb
     report.update(id=spec.id, vertices=len(template), faces=len(mesh.faces), seconds=time.perf_counter() - t0,
                   npz_bytes=(gdir / "garment.npz").stat().st_size, glb_bytes=(gdir / "template.glb").stat().st_size)
     return report
@@ -358,20 +359,6 @@ def save_npz_deterministic(path: Path, arrays: dict[str, np.ndarray]) -> None:
             np.lib.format.write_array(data, np.ascontiguousarray(arrays[key]), allow_pickle=False)
             z.writestr(info, data.getvalue())
     path.write_bytes(buf.getvalue())
-
-
-def template_glb(arrays: dict[str, np.ndarray]) -> bytes:
-    """Static template mesh as binary glTF, Y-up ((x, y, z) -> (x, z, -y)), with UVs (seams split)."""
-    import trimesh
-
-    faces, face_uvs = arrays["faces"], arrays["face_uvs"]
-    corners = np.stack([faces.ravel(), face_uvs.ravel()], 1)
-    uniq, inv = np.unique(corners, axis=0, return_inverse=True)
-    v = arrays["vertices"][uniq[:, 0]]
-    v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], 1)
-    mesh = trimesh.Trimesh(v, inv.reshape(-1, 3), process=False,
-                           visual=trimesh.visual.TextureVisuals(uv=arrays["uvs"][uniq[:, 1]]))
-    return trimesh.exchange.gltf.export_glb(trimesh.Scene(mesh), include_normals=True)
 
 
 # (inner, outer) template pairs whose layer order the build reports (information only: the
