@@ -10,13 +10,14 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.middleware.gzip import GZipMiddleware
 from fastapi.openapi.utils import get_openapi
 
 from service.auth import ApiKeyAuth
 from service.cache import ResultCache
 from service.config import Settings
 from service.errors import install_problem_handlers
-from service.http_rules import CatalogCaching, HeadAsGet, JsonOnly
+from service.http_rules import CatalogCaching, EncodingTags, HeadAsGet, JsonOnly
 from service.limits import install_body_size_limit
 from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
@@ -112,7 +113,8 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     app.state.job_store = None
     app.state.job_runner = None
     install_problem_handlers(app)
-    # Middleware, innermost first: body size -> JSON only -> catalog caching -> auth -> CORS -> HEAD as GET -> request context (outermost).
+    # Middleware, innermost first: body size -> JSON only -> catalog caching -> auth -> CORS -> gzip -> its ETags -> HEAD as GET
+    # -> request context (outermost).
     install_body_size_limit(app, settings.max_request_bytes, {"/v1/jobs": settings.job_max_request_bytes})
     app.add_middleware(JsonOnly, paths=frozenset({"/v1/drape", "/v1/jobs", "/v1/bodies/fit"}))
     app.add_middleware(CatalogCaching)  # inside the auth: a 304 is an answer too
@@ -125,6 +127,10 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["GET", "POST", "DELETE", "OPTIONS"],
                            allow_headers=["content-type", settings.api_key_header, "x-request-id", "if-none-match"],
                            expose_headers=["etag", "location", "retry-after", "x-request-id", "x-frames", "x-cache", "server-timing"], max_age=600)
+    # gzip when the client accepts it, on answers of 1 KB or more. Level 1: the README's glb (5.34 MB)
+    # becomes 3.34 MB in 92 ms; level 6 3.23 MB in 301 ms, level 9 3.22 MB in 634 ms (one core).
+    app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=1)
+    app.add_middleware(EncodingTags)  # a strong ETag per coding (RFC 9110 §8.8.3)
     app.add_middleware(HeadAsGet)
     app.add_middleware(RequestContext, metrics=app.state.metrics)
     for module in (garments, body_model, bodies, motions, drape, jobs, health, metrics):

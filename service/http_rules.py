@@ -5,6 +5,9 @@
 - ``JsonOnly``: a POST with a body to a JSON route must say ``Content-Type: application/json``
   (or ``+json``); anything else is 415 with ``Accept-Post`` (RFC 9110 §15.5.16), before the
   body is parsed.
+- ``CatalogCaching``: ETag, Cache-Control and 304 on the read-only catalog routes.
+- ``EncodingTags``: a strong ETag of its own for a gzip-encoded answer (Starlette's
+  ``GZipMiddleware`` compresses but keeps the identity answer's tag).
 """
 from __future__ import annotations
 
@@ -77,7 +80,7 @@ class CatalogCaching:
             return await self.app(scope, receive, send)
         tag = catalog_etag(scope["app"].version, runtime, path)
         given = dict(scope.get("headers") or []).get(b"if-none-match", b"").decode("latin-1")
-        if tag in [t.strip() for t in given.split(",")]:
+        if tag in [t.strip().removeprefix("W/") for t in given.split(",")]:  # If-None-Match compares weakly (RFC 9110 §13.1.2)
             await send({"type": "http.response.start", "status": 304,
                         "headers": [(b"etag", tag.encode()), (b"cache-control", self.CACHE_CONTROL)]})
             await send({"type": "http.response.body", "body": b""})
@@ -97,3 +100,50 @@ def catalog_etag(api_version: str, runtime, path: str) -> str:
     defaults = json.dumps(runtime.defaults.as_dict(), sort_keys=True)
     digest = hashlib.sha256("\n".join([api_version, runtime.assets.combined, defaults, path]).encode()).hexdigest()
     return f'"{digest[:32]}"'
+
+
+GZIP_SUFFIX = "-gzip"
+
+
+class EncodingTags:
+    """Entity tags per content coding, just outside ``GZipMiddleware``.
+
+    A strong ETag names one sequence of bytes (RFC 9110 §8.8.1), and the gzip coding of an answer
+    is other bytes: §8.8.3.3's example gives it a tag of its own. So a strong tag on an answer that
+    left gzip-encoded becomes ``"<tag>-gzip"``; weak tags (the drape's ``W/"..."``: equivalent
+    content, whatever the coding) pass unchanged. Inbound, ``If-None-Match`` reaches the routes
+    (``CatalogCaching``, ``StaticFiles``) with the suffix removed, so they compare their own tags,
+    and a 304 names the tag the client holds: the suffixed one when it sent that and accepts gzip.
+    ``If-Range`` is left alone: a range of the gzip bytes is never a range of the identity bytes,
+    so ``"<tag>-gzip"`` must not match there (the full answer is sent instead).
+    """
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = scope.get("headers") or []
+        given = dict(headers).get(b"if-none-match", b"").decode("latin-1")
+        # the same test as GZipMiddleware's, so that "accepts gzip" means "would be answered in gzip"
+        accepts_gzip = "gzip" in dict(headers).get(b"accept-encoding", b"").decode("latin-1")
+        suffixed = {t.strip().removeprefix("W/")[: -len(GZIP_SUFFIX) - 1] + '"' for t in given.split(",") if t.strip().endswith(GZIP_SUFFIX + '"')}
+        if suffixed:
+            plain = ", ".join(t.strip().replace(GZIP_SUFFIX + '"', '"') for t in given.split(","))
+            scope = {**scope, "headers": [(k, v) for k, v in headers if k != b"if-none-match"] + [(b"if-none-match", plain.encode("latin-1"))]}
+
+        async def tag_per_coding(message):
+            if message["type"] == "http.response.start":
+                raw = message.get("headers", [])
+                out = {k.lower(): v.decode("latin-1") for k, v in raw}
+                tag = out.get(b"etag")
+                if tag and not tag.startswith("W/") and tag.endswith('"'):
+                    encoded = out.get(b"content-encoding") == "gzip"
+                    held = message["status"] == 304 and accepts_gzip and tag.removeprefix("W/") in suffixed
+                    if encoded or held:
+                        tagged = tag[:-1] + GZIP_SUFFIX + '"'
+                        message["headers"] = [(k, tagged.encode("latin-1") if k.lower() == b"etag" else v) for k, v in raw]
+            await send(message)
+
+        await self.app(scope, receive, tag_per_coding)

@@ -85,10 +85,14 @@ def test_a_streamed_body_past_the_limit_is_413(client, settings):
 
 def test_head_answers_the_gets_headers_without_a_body(client):
     for path in ("/v1/garments", "/v1/garments/tshirt/template.glb", "/healthz"):
-        get, head = client.get(path), client.head(path)
-        assert head.status_code == get.status_code == 200, (path, head.text)
-        assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
-        assert head.headers.get("content-length") == str(len(get.content))
+        for coding in ("identity", "gzip"):
+            get, head = client.get(path, headers={"accept-encoding": coding}), client.head(path, headers={"accept-encoding": coding})
+            assert head.status_code == get.status_code == 200, (path, head.text)
+            assert head.content == b"" and head.headers["content-type"] == get.headers["content-type"]
+            for name in ("content-length", "content-encoding", "etag"):
+                assert head.headers.get(name) == get.headers.get(name), (path, coding, name)
+            if coding == "identity":
+                assert head.headers.get("content-length") == str(len(get.content))
     assert client.head("/v1/garments/nope").status_code == 404
 
 
@@ -144,7 +148,8 @@ def test_accept_selects_the_format_and_refuses_what_it_cannot_serve(client):
 
     unformatted = {k: v for k, v in CLIP.items() if k != "format"}
     npz = client.post("/v1/drape", json=unformatted, headers={"accept": "application/x-npz"})
-    assert npz.status_code == 200 and npz.headers["content-type"] == "application/x-npz" and npz.headers["vary"] == "Accept"
+    assert npz.status_code == 200 and npz.headers["content-type"] == "application/x-npz"
+    assert "Accept" in [v.strip() for v in npz.headers["vary"].split(",")]  # and Accept-Encoding (gzip)
     glb = client.post("/v1/drape", json=unformatted, headers={"accept": "model/gltf-binary"})
     assert glb.status_code == 200 and glb.headers["content-type"] == "model/gltf-binary" and glb.content[:4] == b"glTF"
     assert glb.headers["etag"] != npz.headers["etag"]
@@ -176,3 +181,48 @@ def test_the_contract_names_collisions_not_the_flags(client):
     assert r.status_code == 200
     meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
     assert meta["options"]["collisions"] == "off" and meta["model_versions"]["guard"] == "none"
+
+
+def _raw(client, body: dict, accept_encoding: str):
+    """The answer's bytes as sent (httpx would decode a gzip body) and its headers."""
+    with client.stream("POST", "/v1/drape", json=body, headers={"accept": "model/gltf-binary", "accept-encoding": accept_encoding}) as r:
+        assert r.status_code == 200, r.read()
+        return b"".join(r.iter_raw()), r.headers
+
+
+def test_a_glb_drape_is_gzip_encoded_when_the_client_accepts_it(client, tmp_path):
+    import gzip
+    import shutil
+
+    import pygltflib
+
+    from tests.conftest import REPO_ROOT, validate_glb
+
+    body = {"motion": {"type": "clip", "clip": "walk", "duration_s": 0.5}, "garments": [{"id": "tshirt"}], "format": "glb"}
+    zipped, zh = _raw(client, body, "gzip")
+    plain, ph = _raw(client, body, "identity")
+    assert zh["content-encoding"] == "gzip" and int(zh["content-length"]) == len(zipped)
+    assert "content-encoding" not in ph and int(ph["content-length"]) == len(plain) and plain[:4] == b"glTF"
+    assert gzip.decompress(zipped) == plain and len(zipped) < 0.9 * len(plain)
+    gltf = pygltflib.GLTF2.load_from_bytes(gzip.decompress(zipped))
+    assert gltf.asset.extras["frames"] == int(zh["x-frames"]) and len(gltf.animations) == 1
+    if shutil.which("node") and (REPO_ROOT / "node_modules" / "gltf-validator").is_dir():
+        (tmp_path / "gunzipped.glb").write_bytes(gzip.decompress(zipped))
+        assert validate_glb(tmp_path / "gunzipped.glb")["issues"]["numErrors"] == 0
+    # the drape's tag is weak (equivalent content, whatever the coding): the same for both, and it revalidates either
+    assert zh["etag"] == ph["etag"] and zh["etag"].startswith("W/")
+    assert "Accept-Encoding" in zh["vary"] and "Accept" in [v.strip() for v in zh["vary"].split(",")]
+    again = client.post("/v1/drape", json=body, headers={"accept-encoding": "gzip", "if-none-match": zh["etag"]})
+    assert again.status_code == 304
+
+
+def test_catalog_tags_differ_per_coding_and_revalidate(client):
+    plain = client.get("/v1/garments", headers={"accept-encoding": "identity"})
+    zipped = client.get("/v1/garments", headers={"accept-encoding": "gzip"})
+    assert "content-encoding" not in plain.headers and zipped.headers["content-encoding"] == "gzip"
+    assert zipped.headers["etag"] == plain.headers["etag"][:-1] + '-gzip"' and zipped.json() == plain.json()
+    for coding, tag in (("identity", plain.headers["etag"]), ("gzip", zipped.headers["etag"])):
+        again = client.get("/v1/garments", headers={"accept-encoding": coding, "if-none-match": tag})
+        assert again.status_code == 304 and again.headers["etag"] == tag, coding
+    small = client.get("/healthz", headers={"accept-encoding": "gzip"})
+    assert "content-encoding" not in small.headers  # under 1 KB: not worth it
