@@ -23,7 +23,7 @@ from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
 from service.parsing import RequestParser
 from service.pool import WorkerPool
-from service.routes import bodies, body_model, drape, garments, health, jobs, metrics, motions
+from service.routes import bodies, body_model, drape, garments, health, jobs, metrics, motions, viewer
 from service.runtime import Runtime
 from service.schemas import DrapeRequest, Problem
 
@@ -133,7 +133,7 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
     app.add_middleware(EncodingTags)  # a strong ETag per coding (RFC 9110 §8.8.3)
     app.add_middleware(HeadAsGet)
     app.add_middleware(RequestContext, metrics=app.state.metrics)
-    for module in (garments, body_model, bodies, motions, drape, jobs, health, metrics):
+    for module in (garments, body_model, bodies, motions, drape, jobs, health, metrics, viewer):
         app.include_router(module.router, responses=COMMON_ERRORS)
     app.openapi = lambda: problem_openapi(app)
     return app

@@ -9,9 +9,10 @@ import hmac
 
 from service.errors import problem_response
 
-# Paths open without a key: probes, metrics (scraped inside the cluster), the contract and docs.
-PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs"})
-PUBLIC_PREFIXES = ("/docs/assets/",)  # Swagger UI's own files (service/app.py)
+# Paths open without a key: probes, metrics (scraped inside the cluster), the contract and docs,
+# and the try-on page with its files (service/routes/viewer.py; its calls to /v1 send the key).
+PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/viewer"})
+PUBLIC_PREFIXES = ("/docs/assets/", "/viewer/")  # Swagger UI's own files (service/app.py), the page's
 
 
 def key_matches(candidate: str, keys: list[bytes]) -> bool:

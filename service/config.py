@@ -69,6 +69,10 @@ class Settings(BaseSettings):
     # Content-addressed result cache (identical request + model versions -> same output)
     cache_max_bytes: int = Field(256 * 1024 * 1024, ge=0, description="in-memory result cache (0: off)")
 
+    # The try-on page (GET /viewer): its three.js files come from the npm package (npm ci --omit=dev)
+    viewer_three_dir: Path = Field(REPO_ROOT / "node_modules" / "three", description="the three npm package the /viewer page "
+                                   "loads (its build/ and examples/jsm/ files); missing: /viewer answers 503")
+
     # Security
     api_keys: str = Field("", description="comma-separated API keys; empty (and no file): no auth")
     api_keys_file: Path | None = Field(None, description="file with one API key per line")

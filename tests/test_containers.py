@@ -49,6 +49,21 @@ def test_dockerfile_is_multi_stage_slim_non_root_with_healthcheck():
     assert "[train" not in _dockerfile() and "[test" not in _dockerfile()
 
 
+def test_the_image_has_the_viewers_three_js():
+    """A node stage installs the npm runtime dependencies from the lockfile; the final stage copies
+    the three package and points the service at it (else /viewer answers 503)."""
+    ins = _instructions(_dockerfile())
+    starts = [i for i, (op, _) in enumerate(ins) if op == "FROM"]
+    stages = {ins[i][1].split()[-1]: ins[i:j] for i, j in zip(starts, starts[1:] + [len(ins)])}
+    node = next(name for name, stage in stages.items() if stage[0][1].startswith("node:"))
+    assert any(op == "RUN" and "npm ci --omit=dev" in arg for op, arg in stages[node])
+    final = ins[starts[-1]:]
+    copied = [arg.split()[-1] for op, arg in final if op == "COPY" and arg.startswith(f"--from={node} ") and "node_modules/three" in arg]
+    env = dict(kv.split("=", 1) for op, arg in final if op == "ENV" for kv in arg.split())
+    workdir = [arg.strip() for op, arg in final if op == "WORKDIR"][-1]
+    assert copied and env["TRYON_VIEWER_THREE_DIR"] == f"{workdir}/{copied[0].removeprefix('./')}"
+
+
 def _hadolint() -> str | None:
     return shutil.which("hadolint") or next((str(p) for p in [REPO_ROOT / ".venv" / "bin" / "hadolint"] if p.exists()), None)
 
