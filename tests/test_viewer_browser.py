@@ -346,3 +346,28 @@ def test_a_drape_refused_as_too_long_falls_back_to_a_job(browser, keyed_url):
     assert answer["route"].startswith("POST /v1/jobs") and answer["X-Frames"] == "31", answer
     assert [e for e in page.console.errors if "status of 422" not in e] == [], page.console.errors
     page.close()
+
+
+def test_a_meshopt_compressed_glb_loads_and_draws(page, service_url):
+    """EXT_meshopt_compression (options.compression): the page's GLTFLoader has the MeshoptDecoder."""
+    probe = httpx.post(service_url + "/v1/drape", json={"motion": {"type": "clip", "clip": "walk", "duration_s": 0.1}, "garments": [{"id": "tshirt"}],
+                                                        "format": "glb", "options": {"compression": "meshopt"}}, timeout=60)
+    if probe.status_code != 200:
+        pytest.skip(f"this service writes no meshopt glb (the 'compress' extra): {probe.text[:200]}")
+    page.fill("#duration-s", "0.5")
+    page.select_option("#compression", "meshopt")
+    page.click("#drape")
+    _wait_ready(page)
+    answer = _rows(page, "Answer")
+    assert "EXT_meshopt_compression" in answer["glTF extensions"] and answer["X-Frames"] == "16", answer
+    assert _rows(page, "Options")["compression"] == "meshopt"
+    page.click("#play")
+    _scrub(page, 0.2)
+    dressed = _canvas(page)
+    _show(page, "tshirt", False)
+    undressed = _canvas(page)
+    _show(page, "body", False)
+    empty = _canvas(page)
+    figure, shirt = _changed(dressed, empty), _changed(dressed, undressed)
+    assert figure.mean() > 0.06 and shirt.sum() > 0.15 * figure.sum(), (figure.mean(), shirt.sum() / figure.sum())
+    assert page.console.errors == [], page.console.errors

@@ -130,7 +130,7 @@ async function showModel(out) {
   frame(gltf.scene);
   setPlaying(true);
   showVisibility(gltf.scene, extras.garments || []);
-  showFigures(out, extras);
+  showFigures(out, extras, gltf.parser.json.extensionsUsed || []);
 }
 
 // One checkbox per garment node (and the body) of the loaded glb: hide one to see under it.
@@ -164,7 +164,7 @@ function flatten(obj, prefix = '') {
     ? flatten(v, `${prefix}${k}.`) : [[`${prefix}${k}`, Array.isArray(v) ? v.join(', ') : v]]));
 }
 
-function showFigures(out, extras) {
+function showFigures(out, extras, extensions) {
   const section = (title, ...content) => el('section', {}, el('h3', { textContent: title }), ...content);
   const timing = api.parseServerTiming(out.serverTiming);
   const total = Math.max(...timing.filter((s) => s.name !== 'total').map((s) => s.ms || 0), 1); // the longest stage: a full bar
@@ -176,6 +176,7 @@ function showFigures(out, extras) {
       ['X-Cache', out.cache ?? '–'],
       ['Content-Encoding', out.encoding],
       ['glb bytes', out.glb.byteLength.toLocaleString('en')],
+      ['glTF extensions', extensions.join(', ') || '–'],
       ['round trip', `${Math.round(out.wallMs)} ms`],
       ...(out.jobSeconds !== undefined ? [['job, created to finished', `${out.jobSeconds.toFixed(1)} s`]] : []),
     ])),
@@ -346,7 +347,7 @@ function drapeRequest(phenotypes) {
       in_place: $('in-place').checked },
     garments: chosenGarments().map((g) => ({ id: g.id })),
     format: 'glb',
-    options: { fps: Number($('fps').value) },
+    options: { fps: Number($('fps').value), normals: $('normals').checked, compression: $('compression').value },
   };
 }
 
