@@ -89,7 +89,8 @@ def main() -> None:
         cases = [  # (name, writer, garments, body, options)
             ("glb garment", write_glb, [g], None, {}),
             ("glb garment quantize=False", write_glb, [g], None, {"quantize": False}),
-            ("glb garment normals=True", write_glb, [g], None, {"normals": True}),
+            ("glb garment normals=False", write_glb, [g], None, {"normals": False}),
+            ("glb garment compression=meshopt", write_glb, [g], None, {"compression": "meshopt"}),
             ("glb garment + body", write_glb, [g], b, {}),
             ("glb garment + body max_influences=4", write_glb, [g], b, {"max_influences": 4}),
             ("npz garment", write_npz, [g], None, {}),

@@ -158,13 +158,15 @@ def local_chunk(X: np.ndarray, normals: np.ndarray | None, rotate: bool):
     """
     if not rotate or len(X) < 2:
         return X, normals, None
-    Xd = np.asarray(X, np.float64)
-    R = chunk_rotations(Xd)
-    c = Xd.mean(axis=1)  # (L + 1, 3)
-    local = np.einsum("kvi,kij->kvj", Xd - c[:, None], R) + c[0]  # row vectors: (x - c) R = (R^T (x - c))^T
+    X = np.asarray(X, np.float32)
+    R = chunk_rotations(X)
+    c = X.mean(axis=1, dtype=np.float64)  # (L + 1, 3)
+    R32 = R.astype(np.float32)
+    # row vectors: (x - c) R = (R^T (x - c))^T; float32 (~1e-7 m, far under the quantization step)
+    local = np.matmul(X - c[:, None].astype(np.float32), R32) + c[0].astype(np.float32)
     if normals is not None:
-        normals = np.einsum("kvi,kij->kvj", normals, R).astype(np.float32)
-    return local.astype(np.float32), normals, (R, c)
+        normals = np.matmul(np.asarray(normals, np.float32), R32)
+    return local, normals, (R, c)
 
 
 def node_motion(motion: tuple[np.ndarray, np.ndarray], origin) -> tuple[np.ndarray, np.ndarray]:
@@ -336,7 +338,7 @@ def chunk_rotations(X: np.ndarray) -> np.ndarray:
     Xd = np.asarray(X, np.float64)
     A = Xd[0] - Xd[0].mean(axis=0)
     B = Xd - Xd.mean(axis=1, keepdims=True)
-    H = np.einsum("vi,kvj->kij", A, B)  # (L + 1, 3, 3) sum_v a_v b_v^T
+    H = np.matmul(A.T[None], B)  # (L + 1, 3, 3) sum_v a_v b_v^T
     U, _, Vt = np.linalg.svd(H)
     V = np.swapaxes(Vt, -1, -2)
     d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))
