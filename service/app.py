@@ -17,7 +17,7 @@ from service.auth import ApiKeyAuth
 from service.cache import ResultCache
 from service.config import Settings
 from service.errors import install_problem_handlers
-from service.http_rules import CatalogCaching, EncodingTags, HeadAsGet, JsonOnly
+from service.http_rules import GZIP_LEVEL, GZIP_MIN_BYTES, CatalogCaching, EncodingTags, HeadAsGet, JsonOnly
 from service.limits import install_body_size_limit
 from service.logs import REQUEST_ID_PATTERN, request_id_var
 from service.metrics import Metrics
@@ -129,7 +129,8 @@ def create_app(settings: Settings | None = None, runtime: Runtime | None = None)
                            expose_headers=["etag", "location", "retry-after", "x-request-id", "x-frames", "x-cache", "server-timing"], max_age=600)
     # gzip when the client accepts it, on answers of 1 KB or more. Level 1: the README's glb (5.34 MB)
     # becomes 3.34 MB in 92 ms; level 6 3.23 MB in 301 ms, level 9 3.22 MB in 634 ms (one core).
-    app.add_middleware(GZipMiddleware, minimum_size=1024, compresslevel=1)
+    # (drape glbs and npzs are gzipped by their route, on a thread: service/routes/drape.py)
+    app.add_middleware(GZipMiddleware, minimum_size=GZIP_MIN_BYTES, compresslevel=GZIP_LEVEL)
     app.add_middleware(EncodingTags)  # a strong ETag per coding (RFC 9110 §8.8.3)
     app.add_middleware(HeadAsGet)
     app.add_middleware(RequestContext, metrics=app.state.metrics)
