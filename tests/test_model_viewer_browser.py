@@ -46,7 +46,7 @@ BACKGROUND = (255, 255, 255)
 
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed: pip install -e '.[test]'")
 Image = pytest.importorskip("PIL.Image", reason="Pillow not installed")
-from tests.test_viewer_browser import CHROMIUM, CHROMIUM_ARGS, _serve  # noqa: E402  (after the skips it needs)
+from tests.test_viewer_browser import CHROMIUM, CHROMIUM_ARGS, _serve, browser  # noqa: E402,F401  (after the skips it needs; browser: the shared fixture)
 
 pytestmark = [
     pytest.mark.skipif(not CHROMIUM.is_file(), reason=f"{CHROMIUM} missing: apt-get install chromium (.ci/run does)"),
@@ -88,14 +88,6 @@ def glbs(tmp_path_factory):
             out[name] = r.content
     assert b"EXT_meshopt_compression" in out["meshopt"][:200_000] and b"EXT_meshopt_compression" not in out["plain"][:200_000]
     return out
-
-
-@pytest.fixture(scope="module")
-def browser():
-    with sync_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 class Session:
