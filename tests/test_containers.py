@@ -33,35 +33,139 @@ def _instructions(text: str) -> list[tuple[str, str]]:
             for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
 
 
-def test_dockerfile_is_multi_stage_slim_non_root_with_healthcheck():
+def _stages() -> dict[str, list[tuple[str, str]]]:
     ins = _instructions(_dockerfile())
-    froms = [arg for op, arg in ins if op == "FROM"]
-    assert len(froms) >= 2 and all("slim" in f for f in froms)
-    final = ins[max(i for i, (op, _) in enumerate(ins) if op == "FROM"):]
+    starts = [i for i, (op, _) in enumerate(ins) if op == "FROM"]
+    return {ins[i][1].split()[-1]: ins[i:j] for i, j in zip(starts, starts[1:] + [len(ins)])}
+
+
+def _arg_defaults() -> dict[str, str]:
+    """The build arguments declared before the first FROM, with their defaults."""
+    ins = _instructions(_dockerfile())
+    head = ins[:next(i for i, (op, _) in enumerate(ins) if op == "FROM")]
+    return dict(arg.split("=", 1) for op, arg in head if op == "ARG" and "=" in arg)
+
+
+def test_dockerfile_is_multi_stage_slim_non_root_with_healthcheck():
+    stages = _stages()
+    args = _arg_defaults()
+    assert len(stages) >= 2 and args["BASE"] == "python:3.11-slim"
+    bases = {name: stage[0][1].split()[0] for name, stage in stages.items()}
+    assert bases["build"] == bases["runtime"] == "${BASE}"  # the base is a build argument, slim by default
+    final = stages["runtime"]
     users = [arg for op, arg in final if op == "USER"]
     assert users and users[-1].strip() not in ("root", "0")
     assert any(op == "HEALTHCHECK" for op, _ in final)
     assert any(op == "COPY" and "assets" in arg for op, arg in final)  # assets baked in
     assert [arg for op, arg in final if op == "CMD"][-1].strip() == '["python", "-m", "service"]'
-    # runtime dependencies only: the image installs the project without extras; no torch there
+    # runtime dependencies only: the image installs the locked runtime dependencies; no torch there
     deps = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     assert not any(d.startswith(("torch", "anny")) for d in deps)
     assert "[train" not in _dockerfile() and "[test" not in _dockerfile()
 
 
+def test_the_image_installs_the_hashed_lock_and_the_final_stage_needs_no_network():
+    build = " ".join(arg for op, arg in _stages()["build"] if op == "RUN")
+    assert "--require-hashes" in build and "-r /tmp/runtime.lock" in build and "--no-index" in build
+    final_runs = [arg for op, arg in _stages()["runtime"] if op == "RUN"]
+    assert not any(word in run for run in final_runs for word in ("pip ", "apt-get", "npm", "curl", "wget"))
+    assert any(op == "COPY" and arg.startswith("--from=build /opt/venv") for op, arg in _stages()["runtime"])
+
+
+def _pins(path) -> dict[str, str]:
+    return dict(m.groups() for m in re.finditer(r"^([A-Za-z0-9_.-]+)==(\S+)", path.read_text(), re.M))
+
+
+def test_the_lock_pins_every_runtime_dependency_with_hashes_and_ci_uses_the_same_pins():
+    lock = REPO_ROOT / "requirements" / "runtime.lock"
+    pins = _pins(lock)
+    entries = re.split(r"^(?=[A-Za-z0-9_.-]+==)", lock.read_text(), flags=re.M)[1:]
+    assert all("--hash=sha256:" in entry for entry in entries) and len(entries) == len(pins)
+    deps = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]
+    names = [re.split(r"[<>=\[ ]", d, maxsplit=1)[0].lower() for d in deps["dependencies"] + deps["optional-dependencies"]["compress"]]
+    assert {n.replace("_", "-") for n in names} <= {p.lower() for p in pins}
+    assert _pins(REPO_ROOT / "requirements" / "runtime-constraints.txt") == pins
+    # the README's install and test commands (what .ci/run runs) install under those pins
+    readme = (REPO_ROOT / "README.md").read_text()
+    assert readme.count("-c requirements/runtime-constraints.txt") >= 2
+
+
+def test_dockerignore_sends_only_what_the_image_copies():
+    ignore = (REPO_ROOT / ".dockerignore").read_text().splitlines()
+    assert "*" in ignore  # everything is ignored but what is listed
+    allowed = {line[1:].rstrip("/") for line in ignore if line.startswith("!")}
+    copied = {src.rstrip("/") for op, arg in _instructions(_dockerfile()) if op == "COPY" and not arg.startswith("--from")
+              for src in arg.split()[:-1]}
+    assert copied <= allowed, copied - allowed
+    assert not allowed & {".venv", ".git", "build", "node_modules"}
+
+
 def test_the_image_has_the_viewers_three_js():
-    """A node stage installs the npm runtime dependencies from the lockfile; the final stage copies
-    the three package and points the service at it (else /viewer answers 503)."""
-    ins = _instructions(_dockerfile())
-    starts = [i for i, (op, _) in enumerate(ins) if op == "FROM"]
-    stages = {ins[i][1].split()[-1]: ins[i:j] for i, j in zip(starts, starts[1:] + [len(ins)])}
-    node = next(name for name, stage in stages.items() if stage[0][1].startswith("node:"))
+    """A node stage installs the npm runtime dependencies from the lockfile; the build stage keeps
+    of the three package the files the /viewer route serves; the final stage copies them and points
+    the service at them (else /viewer answers 503)."""
+    stages = _stages()
+    node = next(name for name, stage in stages.items() if stage[0][1].startswith("${NODE_BASE}"))
+    assert _arg_defaults()["NODE_BASE"].startswith("node:")
     assert any(op == "RUN" and "npm ci --omit=dev" in arg for op, arg in stages[node])
-    final = ins[starts[-1]:]
-    copied = [arg.split()[-1] for op, arg in final if op == "COPY" and arg.startswith(f"--from={node} ") and "node_modules/three" in arg]
+    assert any(op == "COPY" and arg.startswith(f"--from={node} ") and "node_modules/three" in arg for op, arg in stages["build"])
+    assert any(op == "RUN" and "THREE_FILES" in arg for op, arg in stages["build"])
+    final = stages["runtime"]
+    copied = [arg.split()[-1] for op, arg in final if op == "COPY" and arg.startswith("--from=build /opt/three ")]
     env = dict(kv.split("=", 1) for op, arg in final if op == "ENV" for kv in arg.split())
     workdir = [arg.strip() for op, arg in final if op == "WORKDIR"][-1]
     assert copied and env["TRYON_VIEWER_THREE_DIR"] == f"{workdir}/{copied[0].removeprefix('./')}"
+
+
+def _proxying(conf: str) -> dict[str, list[str]]:
+    """Each nginx location's proxy directives, plus the http-level ones under the key 'http'."""
+    out: dict[str, list[str]] = {"http": []}
+    where = "http"
+    for raw in conf.splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if line.startswith("location "):
+            where = line.removeprefix("location ").rstrip("{ ").strip()
+            out[where] = []
+        elif line == "}":
+            where = "http"
+        elif line.startswith("proxy_"):
+            out[where].append(line)
+    return out
+
+
+def test_nginx_retries_on_another_replica_and_resends_only_the_pure_post():
+    """A refused, dropped, 502 or 503 request goes to the next replica; only POST /v1/drape (a pure
+    function of its body) may be resent once it reached a replica (non_idempotent); the loopback
+    configuration of the container test proxies exactly as the deployed one."""
+    main = _proxying((DOCKER / "nginx.conf").read_text())
+    loop = _proxying((DOCKER / "nginx.loopback.conf").read_text())
+    assert main == loop
+    retry = {where: next(d for d in directives if d.startswith("proxy_next_upstream ")) for where, directives in main.items() if where != "http"}
+    assert set(retry) == {"= /v1/drape", "/"}
+    for where, directive in retry.items():
+        assert {"error", "timeout", "http_502", "http_503"} <= set(directive.rstrip(";").split()[1:])
+        assert ("non_idempotent" in directive) == (where == "= /v1/drape")
+    assert "proxy_next_upstream_tries 2;" in main["http"]
+    # a replica that answered 503 (busy) is not taken out of rotation: with max_fails the survivor of
+    # a kill, briefly busy, would be marked down too and every client would get 502 "no live upstreams"
+    for conf in ("nginx.conf", "nginx.loopback.conf"):
+        servers = [line for line in (DOCKER / conf).read_text().splitlines() if line.strip().startswith("server ") and ":" in line]
+        assert servers and all("max_fails=0" in line for line in servers)
+
+
+def test_the_loopback_stack_is_the_deployed_stack_on_loopback_ports():
+    main = yaml.safe_load((DOCKER / "docker-compose.yml").read_text())["services"]
+    loop = yaml.safe_load((DOCKER / "compose.loopback.yml").read_text())["services"]
+    assert {"redis", "api1", "api2", "worker", "proxy"} == set(loop)
+    for name in ("api1", "api2", "worker"):
+        role = "worker" if name == "worker" else "api"
+        assert loop[name]["network_mode"] == "host"
+        assert loop[name]["command"][:3] == main[role]["command"][:3]  # python -m service[.worker]
+        assert loop[name]["volumes"] == main[role]["volumes"]
+        assert {k for k in main[role]["environment"] if not str(main[role]["environment"][k]).startswith("${")} <= set(loop[name]["environment"])
+    for name in ("api1", "api2"):  # the port the replica listens on is the one its HEALTHCHECK asks
+        port = loop[name]["command"][loop[name]["command"].index("--port") + 1]
+        assert loop[name]["environment"]["TRYON_PORT"] == port and f"127.0.0.1:{port}" in (DOCKER / "nginx.loopback.conf").read_text()
 
 
 def _hadolint() -> str | None:
@@ -85,8 +189,9 @@ def _compose() -> list[str] | None:
 def test_compose_file_is_valid_and_complete():
     compose = _compose()
     if compose is not None:
-        proc = subprocess.run(compose + ["-f", str(DOCKER / "docker-compose.yml"), "config", "-q"], capture_output=True, text=True, timeout=60)
-        assert proc.returncode == 0, proc.stdout + proc.stderr
+        for name in ("docker-compose.yml", "compose.loopback.yml"):
+            proc = subprocess.run(compose + ["-f", str(DOCKER / name), "config", "-q"], capture_output=True, text=True, timeout=60)
+            assert proc.returncode == 0, name + ": " + proc.stdout + proc.stderr
     spec = yaml.safe_load((DOCKER / "docker-compose.yml").read_text())
     services = spec["services"]
     assert {"api", "worker", "proxy", "redis"} <= set(services)
@@ -108,8 +213,8 @@ def _container_env(tmp_path, redis: str) -> dict:
     """The image's ENV and the compose file's environment, pointed at local paths and services."""
     env = dict(os.environ)
     for op, arg in _instructions(_dockerfile()):
-        if op == "ENV":
-            env.update(dict(kv.split("=", 1) for kv in arg.split()))
+        if op == "ENV":  # not the image's PATH and PYTHONPATH (its venv and /app): this checkout's
+            env.update({k: v for k, v in (kv.split("=", 1) for kv in arg.split()) if k not in ("PATH", "PYTHONPATH")})
     env.update({k: str(v) for k, v in yaml.safe_load((DOCKER / "docker-compose.yml").read_text())["services"]["api"]["environment"].items()
                 if not str(v).startswith("${")})
     env.update(TRYON_ASSETS_DIR=str(REPO_ROOT / "assets"), TRYON_JOBS_DIR=str(tmp_path), TRYON_REDIS_URL=redis, TRYON_WORKERS="1",
