@@ -25,6 +25,7 @@ import collections
 import json
 import os
 import random
+import re
 import shutil
 import socket
 import subprocess
@@ -254,6 +255,11 @@ def _build_images(env: dict, steps: Steps) -> None:
     base = int(_run(["podman", "image", "inspect", "--format", "{{.Size}}", BASE_IMAGE], env).stdout.strip())
     du = _run(["podman", "run", "--rm", "--network", "none", "--entrypoint", "du", IMAGE, "-sk", "/opt/venv", "/app/assets",
                "/app/node_modules/three", "/app/inference", "/app/service"], env).stdout
+    packages = _run(["podman", "run", "--rm", "--network", "none", "--entrypoint", "sh", IMAGE, "-c",
+                     "cd /opt/venv/lib/python3.11/site-packages && du -sk * | sort -rn | head -8"
+                     " && find . -name '*.pyc' -printf '%s\\n' | awk '{s += $1} END {print int(s / 1024), \"total\"}'"], env).stdout
+    steps.facts["python_packages_mb"] = {(line.split()[1] if line.split()[1] != "total" else "all .pyc"): round(int(line.split()[0]) * 1024 / 1e6, 1)
+                                         for line in packages.splitlines()}
     steps.facts["image_mb"] = round(size / 1e6, 1)
     steps.facts["image_parts_mb"] = {"base": round(base / 1e6, 1),
                                      **{line.split()[1]: round(int(line.split()[0]) * 1024 / 1e6, 1) for line in du.splitlines()}}
@@ -289,7 +295,14 @@ def test_the_compose_stack_runs_in_podman(tmp_path):
             assert r.status_code == 200 and r.headers["content-type"].startswith("model/gltf-binary"), r.text[:500]
             (tmp_path / "readme.glb").write_bytes(r.content)
             assert validate_glb(tmp_path / "readme.glb")["issues"]["numErrors"] == 0
-            assert httpx.get(PROXY + "/viewer/vendor/three/build/three.module.js", timeout=10).status_code == 200
+            # what the image trims must not be what a page loads: the viewer's three.js, the API docs' Swagger UI
+            for path in ("/viewer/", "/viewer/vendor/three/build/three.module.js", "/viewer/vendor/three/examples/jsm/loaders/GLTFLoader.js", "/docs"):
+                assert httpx.get(PROXY + path, timeout=10).status_code == 200, path
+            docs = httpx.get(PROXY + "/docs", timeout=10).text
+            assets = re.findall(r'(?:src|href)="(/[^"]+\.(?:js|css))"', docs)
+            assert len(assets) >= 2, docs[:1000]
+            for asset in assets:
+                assert httpx.get(PROXY + asset, timeout=10).status_code == 200, asset
 
         with steps("job"):
             r = httpx.post(PROXY + "/v1/jobs", json=README_REQUEST, timeout=30)
