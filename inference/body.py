@@ -318,6 +318,22 @@ def linear_blend_skinning(rest_vertices: np.ndarray, weights: np.ndarray, transf
     return out
 
 
+def skin_points_and_normals(rest_points: np.ndarray, rest_normals: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Posed points and unit normals by LBS (eq. 4.3): points by the blended transforms, normals
+    by the blended rotations (the transforms without their translation), renormalised. The
+    normals of a posed mesh without rebuilding them from its faces: exact for rigid parts, an
+    approximation where the blend shears.
+
+    rest_points, rest_normals : (B, V, 3) float32 ; weights : (V, J) ; transforms : (B, T, J, 4, 4)
+    returns points (B, T, V, 3) metres, normals (B, T, V, 3) unit, float32
+    """
+    rotations = np.array(transforms, np.float32)
+    rotations[..., :3, 3] = 0.0
+    normals = linear_blend_skinning(rest_normals, weights, rotations)
+    normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+    return linear_blend_skinning(rest_points, weights, transforms), normals
+
+
 def linear_blend_skinning_reference(rest_vertices: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
     """The readable form of ``linear_blend_skinning`` (same arguments and result, float64
     inside): v'[b, t, v] = sum_j w[v, j] (R[b, t, j] x[b, (t,) v] + t[b, t, j]). The tuned kernel

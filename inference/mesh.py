@@ -13,17 +13,17 @@ MAJOR_COMPONENT_FRACTION = 0.1
 NORMAL_BLOCK = 16  # frames per block of vertex_normals (cache-sized temporaries)
 
 
-def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True) -> np.ndarray:
+def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True, dtype: type = np.float32) -> np.ndarray:
     """Face normals n_f = (v1 - v0) x (v2 - v0) (length = 2 * area) or unit.
 
-    verts : (..., V, 3) float32, metres ; faces : (F, 3) int, counter-clockwise seen from outside
-    returns (..., F, 3) float32
+    verts : (..., V, 3) metres ; faces : (F, 3) int, counter-clockwise seen from outside
+    returns (..., F, 3) in ``dtype`` (float32 at runtime; the asset build works in float64)
     """
-    tri = verts[..., faces, :]  # (..., F, 3, 3)
+    tri = np.asarray(verts, dtype)[..., faces, :]  # (..., F, 3, 3)
     n = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
     if unit:
         n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
-    return n.astype(np.float32)
+    return n.astype(dtype, copy=False)
 
 
 def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.ndarray | None = None) -> tuple[np.ndarray, sp.csr_matrix]:

@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 import torch
 
+from training.candidates import body_candidates
 from training.physics import (
     GRAVITY_M_S2,
     ClothGeometry,
     ClothMaterial,
     bending_energy,
     bending_hessian,
-    body_candidates,
     body_signed_distances,
     collision_energy,
     collision_hessian,

@@ -1,7 +1,7 @@
 """The tuned LBS kernel (``inference.body.linear_blend_skinning``: blocks of frames, coordinate
 major) against its readable reference, over frame counts that fill one block, several and a
-partial last one, with a rest shape shared by the frames or one per frame; and the training's
-torch LBS against the numpy one."""
+partial last one, with a rest shape shared by the frames or one per frame; points with their
+normals; and the training's torch LBS against the numpy one."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import inference.body as body_module
-from inference.body import linear_blend_skinning, linear_blend_skinning_reference
+from inference.body import linear_blend_skinning, linear_blend_skinning_reference, skin_points_and_normals
 
 
 def _case(B: int, T: int, V: int, J: int, per_frame: bool, seed: int = 0):
@@ -52,3 +52,33 @@ def test_training_torch_lbs_equals_numpy():
     rest, w, transforms = _case(1, 5, 40, 6, per_frame=True, seed=3)
     got = skin_torch(torch.as_tensor(rest[0]), torch.as_tensor(w), torch.as_tensor(transforms[0])).numpy()
     np.testing.assert_allclose(got, linear_blend_skinning(rest, w, transforms)[0], atol=2e-5, rtol=0)
+
+
+def test_normals_turn_with_the_bones_and_stay_unit():
+    """One bone: the normals are the rest normals rotated (the translation does not move them),
+    the points are transformed; blended bones: unit normals between the two rotations."""
+    rest, w, transforms = _case(2, 3, 30, 4, per_frame=False, seed=5)
+    normals = rest / np.linalg.norm(rest, axis=-1, keepdims=True)
+    one = np.zeros_like(w)
+    one[:, 2] = 1.0
+    p, n = skin_points_and_normals(rest, normals, one, transforms)
+    R, t = transforms[:, :, 2, :3, :3], transforms[:, :, 2, :3, 3]
+    np.testing.assert_allclose(n, np.einsum("btik,bvk->btvi", R, normals), atol=1e-5)
+    np.testing.assert_allclose(p, np.einsum("btik,bvk->btvi", R, rest) + t[:, :, None], atol=1e-5)
+    p, n = skin_points_and_normals(rest, normals, w, transforms)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(p, linear_blend_skinning(rest, w, transforms), atol=0)
+
+
+def test_training_torch_points_and_normals_equal_numpy():
+    torch = pytest.importorskip("torch")
+    from training.train_wrinkle import skin_points_and_normals_torch
+
+    rest, w, transforms = _case(1, 4, 40, 6, per_frame=False, seed=7)
+    normals = rest / np.linalg.norm(rest, axis=-1, keepdims=True)
+    want_p, want_n = skin_points_and_normals(rest, normals, w, transforms)
+    T = transforms.shape[1]
+    got_p, got_n = skin_points_and_normals_torch(torch.as_tensor(rest).expand(T, -1, -1), torch.as_tensor(normals).expand(T, -1, -1),
+                                                 torch.as_tensor(w), torch.as_tensor(transforms[0]))
+    np.testing.assert_allclose(got_p.numpy(), want_p[0], atol=2e-5, rtol=0)
+    np.testing.assert_allclose(got_n.numpy(), want_n[0], atol=2e-5, rtol=0)

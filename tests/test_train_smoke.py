@@ -183,12 +183,22 @@ def test_inside_of_batch_splits_by_windows():
 def test_matrix_candidates_match_the_kd_tree():
     """The GPU's candidate search (distances by matrix products) finds the KD-tree's k nearest
     body vertices (as sets; float32 rounding may swap exact near ties at the k-th place)."""
-    from training.train_wrinkle import matrix_candidates, posed_candidates
+    from scipy.spatial import cKDTree
+
+    from training.candidates import candidates, matrix_candidates
 
     g = torch.Generator().manual_seed(0)
     body = torch.rand(5, 2000, 3, generator=g) * torch.tensor([0.4, 0.3, 1.7])
     x = body[:, :700] + 0.01 * torch.randn(5, 700, 3, generator=g)
-    a = posed_candidates(body, x, 8).sort(-1).values
+    a = candidates(body, x, 8).sort(-1).values
     b = matrix_candidates(body, x, 8, chunk=2).sort(-1).values
-    assert a.shape == b.shape == (5, 700, 8)
+    assert a.shape == b.shape == (5, 700, 8) and a.dtype == torch.int64
     assert (a == b).all(-1).float().mean() > 0.99
+    # prebuilt trees (the fit training's, reused every step) give the same sets, in another order of bodies too
+    trees = [cKDTree(p) for p in body.numpy()]
+    assert torch.equal(candidates(None, x, 8, trees).sort(-1).values, a)
+    order = [3, 0, 4]
+    assert torch.equal(candidates(None, x[order], 8, [trees[i] for i in order]).sort(-1).values, a[order])
+    # the nearest candidate is the nearest body vertex
+    nearest = torch.cdist(x, body).argmin(-1)
+    assert (candidates(body, x, 8)[..., 0] == nearest).float().mean() > 0.999

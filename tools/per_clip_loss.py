@@ -23,7 +23,8 @@ from inference.garment import GarmentCatalog
 from training.datasets import TRAIN_CLIPS, MotionBank, ShapeBank, WindowLifter, sample_adult_phenotypes
 from training.physics import ClothGeometry
 from training.train_fit import load_fit
-from training.train_wrinkle import garment_frames, make_batch, posed_candidates, snug_loss, wrinkle_from_checkpoint
+from training.candidates import candidates
+from training.train_wrinkle import garment_frames, make_batch, snug_loss, wrinkle_from_checkpoint
 
 
 def main() -> None:
@@ -60,7 +61,7 @@ def main() -> None:
             batch = make_batch(body, bank, fitted, motions, shape_idx, motions.window_frames(starts, T), WindowLifter(body, bank, motions))
             x = garment_frames(model, batch, weights, model.initial_state(n))
             flat = x.reshape(-1, *x.shape[2:])
-            batch.candidates = posed_candidates(batch.body_points, flat, 8)
+            batch.candidates = candidates(batch.body_points, flat, 8)
             inside = torch.as_tensor(bank.inside_mask(body, shape_idx, batch.transforms.numpy(), flat.numpy()))
             loss, terms = snug_loss(cloth, x, batch, 1.0 / motions.fps, inside)
         collision = terms["collision"].numpy()

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import eigsh
 
-from inference.body import BodyModel, linear_blend_skinning
+from inference.body import BodyModel
 from inference.garment import GarmentAsset
 from inference.mesh import vertex_normals
 from inference.metrics import inside_mask
@@ -30,7 +30,7 @@ from inference.motion.descriptor import DESCRIPTOR_LAYOUT, motion_descriptor
 from inference.motion.retarget import ground, retarget, target_leg_length
 from inference.motion.self_contact import ArmLifter
 from training.models import phenotype_box
-from training.physics import body_candidates
+from training.candidates import body_candidates
 
 log = logging.getLogger(__name__)
 
@@ -356,17 +356,3 @@ def pose_windows(body: BodyModel, bank: ShapeBank, shape_idx: np.ndarray, motion
     translation, gamma = scale_motion(motions.translation[frames], gamma, ratio)
     _, transforms = body.pose(bank.rest_bone_poses[shape_idx], rotations, translation)
     return transforms, gamma
-
-
-def posed_body(bank: ShapeBank, shape_idx: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The kept body vertices and normals posed by ``transforms`` (B, T, J, 4, 4), numpy LBS.
-
-    returns points (B, T, M, 3), normals (B, T, M, 3) (rest normals rotated by the blended
-    rotation, renormalised)
-    """
-    pts = np.concatenate([linear_blend_skinning(bank.body_points[i][None], bank.body_weights, transforms[b : b + 1]) for b, i in enumerate(shape_idx)])
-    rot = transforms.copy()
-    rot[..., :3, 3] = 0.0
-    nrm = np.concatenate([linear_blend_skinning(bank.body_normals[i][None], bank.body_weights, rot[b : b + 1]) for b, i in enumerate(shape_idx)])
-    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True) + 1e-12
-    return pts, nrm

@@ -39,7 +39,8 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
+
+from training.candidates import body_candidates  # noqa: F401  TEMP re-export
 
 log = logging.getLogger(__name__)
 
@@ -327,7 +328,7 @@ def closest_body_vertices(x: torch.Tensor, body_points: torch.Tensor, candidates
     """Index of the closest body vertex of every garment vertex, (B, V) int64 (not differentiable).
 
     x : (B, V, 3) ; body_points : (B, M, 3) ; candidates : (B, V, k) or (V, k) int64 indices
-    into the body to choose among (KD-tree, ``body_candidates``), or None: all M body vertices
+    into the body to choose among (KD-tree, ``training.candidates.body_candidates``), or None: all M body vertices
     (a (B, V, M) distance matrix: small meshes only)
     """
     B, V = x.shape[:2]
@@ -387,21 +388,6 @@ def _blended_planes(x, body_points, body_normals, candidates, smoothing_m):
     w = torch.softmax(-(r * r).sum(-1) / (smoothing_m * smoothing_m), dim=-1)  # (B, V, k)
     d = (w * (r * n).sum(-1)).sum(-1)
     return d, (w[..., None] * n).sum(-2)
-
-
-def body_candidates(x: np.ndarray, body_points: np.ndarray, k: int = 8) -> np.ndarray:
-    """KD-tree candidates: the k body vertices closest to each garment vertex, per batch item.
-
-    x : (B, V, 3) metres ; body_points : (B, M, 3) metres ; returns (B, V, k) int64
-    """
-    x = np.asarray(x)
-    body_points = np.asarray(body_points)
-    k = min(k, body_points.shape[1])
-    out = np.empty(x.shape[:2] + (k,), np.int64)
-    for b in range(x.shape[0]):
-        idx = cKDTree(body_points[b]).query(x[b], k=k)[1]
-        out[b] = idx.reshape(x.shape[1], k)
-    return out
 
 
 # ------------------------------------------------------------------------------ energies

@@ -216,7 +216,7 @@ def render(meshes: Sequence[Mesh], view: str = "front", size: tuple[int, int] = 
     xy[:, 1] = 0.5 * H * k - (cam[:, 1] - centre[1]) * scale
     face_id, _ = rasterize(xy, cam[:, 2], F, (W * k, H * k))
 
-    colour = shade(face_normals(V, F).astype(np.float64), C, -axes[2], ambient)  # headlight: toward the camera
+    colour = shade(face_normals(V, F, dtype=np.float64), C, -axes[2], ambient)  # headlight: toward the camera
     image = np.empty((H * k, W * k, 3))
     image[:] = np.asarray(background, np.float64)
     hit = face_id >= 0

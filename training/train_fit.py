@@ -28,6 +28,7 @@ from inference.body import BodyModel
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
 from training.datasets import CACHE_DIR, REPO_ROOT, ShapeBank, harmonic_basis, sample_adult_phenotypes
+from training.candidates import candidates
 from training.cli import run as run_cli
 from training.manifest import git_commit
 from training.models import FitRegressor
@@ -71,18 +72,6 @@ class FitConfig:
     log_every: int = 50
 
 
-def fresh_candidates(trees: list[cKDTree], shape_idx: np.ndarray, x: torch.Tensor, k: int, body_points: torch.Tensor | None = None) -> torch.Tensor:
-    """Collision candidates at the current garment positions x (B, V, 3): the k nearest kept
-    body vertices of each bank shape's KD-tree ``trees[shape_idx[b]]``, (B, V, k) int64.
-    On a GPU, ``body_points`` (B, M, 3) of these shapes replace the trees (all distances,
-    ``training.train_wrinkle.posed_candidates``)."""
-    if x.device.type != "cpu":
-        from training.train_wrinkle import posed_candidates
-        return posed_candidates(body_points, x, k)
-    pts = x.detach().numpy()
-    return torch.as_tensor(np.stack([trees[i].query(pts[b], k=k)[1].reshape(len(pts[b]), k) for b, i in enumerate(shape_idx)]), dtype=torch.int64)
-
-
 def exact_inside(bank: ShapeBank, faces: np.ndarray, shape_idx: np.ndarray, x: torch.Tensor) -> torch.Tensor:
     """Garment vertices x (B, V, 3) inside the closed shaped rest skin of bank shapes ``shape_idx``
     (B,) by the winding number (``inference.metrics.inside_mask``, the evaluation's test): (B, V)
@@ -100,8 +89,7 @@ def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBa
     with torch.no_grad():
         x0 = torch.as_tensor(bank.retarget)
         x = x0 + model(torch.as_tensor(bank.phenotypes)) if model is not None else x0
-        trees = [cKDTree(p) for p in bank.body_points]
-        cand = fresh_candidates(trees, np.arange(len(bank)), x, bank.candidates.shape[-1])
+        cand = candidates(torch.as_tensor(bank.body_points), x, bank.candidates.shape[-1])
         terms = energy_terms(cloth, x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), cand)
         d = body_signed_distances(x, torch.as_tensor(bank.body_points), torch.as_tensor(bank.body_normals), cand)
         dist = (x - x0).norm(dim=-1)
@@ -158,7 +146,7 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         idx_np = rng.integers(0, len(bank), config.batch_size)
         idx = torch.as_tensor(idx_np).to(device)
         x = X0[idx] + model(P[idx])  # eq. 4.2 without R_L: retarget fit + R_G
-        cand = fresh_candidates(trees, idx_np, x, config.candidates, BP[idx]) if config.fresh_candidates else C[idx]
+        cand = candidates(BP[idx], x, config.candidates, None if trees is None else [trees[i] for i in idx_np]) if config.fresh_candidates else C[idx]
         inside = exact_inside(bank, body.faces, idx_np, x) if config.exact_inside else None
         terms = energy_terms(train_cloth, x, BP[idx], BN[idx], cand, inside=inside)
         loss = sum(terms.values()).mean()  # L_static, eq. 5.7

@@ -45,7 +45,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel
 from inference.garment import GarmentCatalog
@@ -62,6 +61,7 @@ from training.datasets import (
     pose_windows,
     sample_adult_phenotypes,
 )
+from training.candidates import candidates
 from training.cli import run as run_cli
 from training.manifest import git_commit
 from training.models import WrinkleGRU
@@ -99,7 +99,7 @@ class WrinkleConfig:
     validation_shapes: int = 4  # neutral + held-out uniform shapes
     validation_frames: int = 120  # first frames of the validation clip
     max_clip_frames: int | None = None  # truncate clips (smoke runs)
-    fresh_candidates: bool = True  # re-select collision candidates in every posed frame (KD-tree of the posed body)
+    fresh_candidates: bool = True  # re-select collision candidates in every posed frame (``training.candidates``)
     exact_inside: bool = False  # collision loss: vertices inside the closed posed skin by the exact winding number pulled to their closest skin vertex (physics.collision_energy)
     lift_arms: bool = True  # train on the poses the service drapes: arms lifted out of the torso (inference.motion.self_contact)
     init: str | None = None  # warm start: a wrinkle.pt checkpoint to continue from (its wall time is added)
@@ -135,20 +135,23 @@ def skin_torch(rest: torch.Tensor, weights: torch.Tensor, transforms: torch.Tens
     return torch.einsum("nvik,nvk->nvi", M[..., :3], rest) + M[..., 3]
 
 
-def posed_body_torch(bank: ShapeBank, shape_idx: np.ndarray, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Kept body vertices and unit normals of bank shapes posed by ``transforms`` (B, T, J, 4, 4).
+def skin_points_and_normals_torch(points: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``inference.body.skin_points_and_normals`` in torch: points by the blended transforms,
+    normals by the blended rotations, renormalised. points, normals (N, V, 3) ; weights (V, J) ;
+    transforms (N, J, 4, 4) ; returns (N, V, 3) x 2."""
+    rotations = transforms.clone()
+    rotations[..., :3, 3] = 0.0
+    n = skin_torch(normals, weights, rotations)
+    return skin_torch(points, weights, transforms), n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
-    Normals: the rest normals rotated by the blended rotation, renormalised. returns (B*T, M, 3) x 2
-    """
+
+def posed_body_torch(bank: ShapeBank, shape_idx: np.ndarray, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Kept body vertices and unit normals of bank shapes posed by ``transforms`` (B, T, J, 4, 4),
+    returns (B*T, M, 3) x 2."""
     B, T = transforms.shape[:2]
     pts = torch.as_tensor(bank.body_points[shape_idx])[:, None].expand(-1, T, -1, -1).reshape(B * T, -1, 3)
     nrm = torch.as_tensor(bank.body_normals[shape_idx])[:, None].expand(-1, T, -1, -1).reshape(B * T, -1, 3)
-    w = torch.as_tensor(bank.body_weights)
-    Tf = transforms.reshape(B * T, *transforms.shape[2:])
-    rot = Tf.clone()
-    rot[..., :3, 3] = 0.0
-    n = skin_torch(nrm, w, rot)
-    return skin_torch(pts, w, Tf), n / (n.norm(dim=-1, keepdim=True) + 1e-12)
+    return skin_points_and_normals_torch(pts, nrm, torch.as_tensor(bank.body_weights), transforms.reshape(B * T, *transforms.shape[2:]))
 
 
 @dataclass
@@ -222,27 +225,6 @@ def garment_frames(model: WrinkleGRU | None, batch: WindowBatch, weights: torch.
     return x.reshape(B, T, -1, 3)
 
 
-def posed_candidates(body_points: torch.Tensor, x: torch.Tensor, k: int) -> torch.Tensor:
-    """Collision candidates in the posed frames: the k nearest posed (kept) body vertices of each
-    garment vertex, from a KD-tree per frame (on a GPU: ``matrix_candidates``).
-    body_points (N, M, 3), x (N, V, 3); returns (N, V, k) int64 on their device."""
-    if x.device.type != "cpu":
-        return matrix_candidates(body_points, x, k)
-    bp, xp = body_points.detach().numpy(), x.detach().numpy()
-    return torch.as_tensor(np.stack([cKDTree(bp[n]).query(xp[n], k=k)[1].reshape(len(xp[n]), k) for n in range(len(bp))]), dtype=torch.int64)
-
-
-def matrix_candidates(body_points: torch.Tensor, x: torch.Tensor, k: int, chunk: int = 8) -> torch.Tensor:
-    """``posed_candidates`` from all garment-body distances, |x|^2 - 2 x.b + |b|^2 by matrix
-    products (``torch.cdist``), ``chunk`` frames at a time: the GPU's search. Measured on an H100:
-    14 ms for a 48-frame T-shirt batch (the direct distance kernel: 600 ms). The float32 rounding
-    of the expansion may swap near ties at the k-th place: the same candidate sets as the KD-tree
-    for 99.95 % of the vertices there. body_points (N, M, 3), x (N, V, 3); returns (N, V, k) int64."""
-    with torch.no_grad():
-        return torch.cat([torch.cdist(x[i:i + chunk].detach(), body_points[i:i + chunk]).topk(k, dim=-1, largest=False).indices
-                          for i in range(0, len(x), chunk)])
-
-
 def snug_loss(cloth: ClothGeometry, x: torch.Tensor, batch: WindowBatch, dt_s: float, inside: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """SNUG loss (eq. 5.5) of windows x (B, T, V, 3): L_static summed over the T frames (eq. 5.7)
     + L_inertia of every frame t >= 2 from its two predecessors (eq. 5.6); mean over the batch.
@@ -269,7 +251,7 @@ def validate(model: WrinkleGRU, cloth: ClothGeometry, body: BodyModel, bank: Sha
             for name, m in (("learned", model), ("fit_only", None)):
                 x = garment_frames(m, batch, weights, model.initial_state(1).to(weights.device) if m is not None else None)
                 if fresh:
-                    batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), batch.candidates.shape[-1])
+                    batch.candidates = candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), batch.candidates.shape[-1])
                 _, terms = snug_loss(cloth, x, batch, 1.0 / motions.fps)
                 for k, v in terms.items():
                     per_frame = float(v.sum()) / (T if k != "inertia" else max(T - 2, 1))
@@ -389,7 +371,7 @@ def train_wrinkle(config: WrinkleConfig, smoke: bool = False, out_dir: Path = CH
         h0 = model.initial_state(config.batch_size, config.h0_std, gen).to(device)  # h0 ~ N(0, 0.1)
         x = garment_frames(model, batch, weights, h0)
         if config.fresh_candidates:
-            batch.candidates = posed_candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
+            batch.candidates = candidates(batch.body_points, x.reshape(-1, *x.shape[2:]), config.candidates)
         inside = None
         if config.exact_inside:  # numpy on the CPU: the posed closed skin and its winding numbers
             inside = torch.as_tensor(inside_of_batch(bank, body, shape_idx, batch.transforms.cpu().numpy(), x.detach().reshape(-1, *x.shape[2:]).cpu().numpy(),

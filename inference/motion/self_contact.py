@@ -42,7 +42,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from inference.body import BodyModel, BodyShape, linear_blend_skinning
+from inference.body import BodyModel, BodyShape, skin_points_and_normals
 from inference.mesh import vertex_normals
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -90,12 +90,8 @@ def _members(body: BodyModel, bones: Sequence[str], rest: np.ndarray, voxel_m: f
 
 def _skin(body: BodyModel, ids: np.ndarray, rest: np.ndarray, normals: np.ndarray, transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Posed points (T, n, 3) and unit normals (T, n, 3) of the vertices ``ids``."""
-    w = body.dense_weights[ids]
-    p = linear_blend_skinning(rest[None, ids], w, transforms[None])[0]
-    rot = transforms.copy()
-    rot[..., :3, 3] = 0.0
-    n = linear_blend_skinning(normals[None, ids], w, rot[None])[0]
-    return p, n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    p, n = skin_points_and_normals(rest[None, ids], normals[None, ids], body.dense_weights[ids], transforms[None])
+    return p[0], n[0]
 
 
 class ArmLifter:

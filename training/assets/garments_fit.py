@@ -12,11 +12,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-try:  # one implementation of the exact inside test for the whole project, when it exists
-    from inference.metrics import inside_mask as _metrics_inside_mask
-except ImportError:  # pragma: no cover - depends on another module's progress
-    _metrics_inside_mask = None
-
+from inference.mesh import face_normals
+from inference.metrics import inside_mask
 from training.assets.garments_mesh import quad_components, unique_edges, vertex_adjacency
 
 
@@ -27,12 +24,7 @@ def body_inside_mask(points: np.ndarray, body_vertices: np.ndarray, body_faces: 
     body_vertices : (Vb, 3) metres ; body_faces : (Fb, 3), closed and outward oriented
     returns       : (N,) bool
     """
-    if _metrics_inside_mask is not None:  # batched API: (B, N, 3), (B, V, 3)
-        return np.asarray(_metrics_inside_mask(np.asarray(points)[None], np.asarray(body_vertices)[None], body_faces), bool)[0]
-    import igl
-
-    w = igl.winding_number(np.asarray(body_vertices, np.float64), np.asarray(body_faces, np.int64), np.asarray(points, np.float64))
-    return w > 0.5
+    return np.asarray(inside_mask(np.asarray(points)[None], np.asarray(body_vertices)[None], body_faces), bool)[0]
 
 
 def closest_points(points: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -43,13 +35,6 @@ def closest_points(points: np.ndarray, body_vertices: np.ndarray, body_faces: np
         np.asarray(points, np.float64), np.asarray(body_vertices, np.float64), np.asarray(body_faces, np.int64)
     )
     return np.sqrt(d2), face, c
-
-
-def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit face normals (F, 3) (right-hand rule)."""
-    p = vertices[faces]
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
 
 
 def largest_component_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -71,7 +56,7 @@ def push_out(points: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarr
     move = inside | (dist < margin_m)
     d = np.where(inside[:, None], c - points, points - c)
     n = np.linalg.norm(d, axis=1, keepdims=True)
-    fn = face_normals(np.asarray(body_vertices, np.float64), np.asarray(body_faces))[face]
+    fn = face_normals(body_vertices, np.asarray(body_faces), dtype=np.float64)[face]
     direction = np.where(n > 1e-7, d / np.maximum(n, 1e-12), fn)
     out = np.where(move[:, None], c + margin_m * direction, points)
     return out, move
