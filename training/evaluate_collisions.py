@@ -22,9 +22,9 @@ import numpy as np
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
 from inference.garment import GarmentCatalog
 from inference.metrics import collision_rates
-from inference.motion.clips import Clip, ClipLibrary, adapt_clip
-from inference.motion.self_contact import lift_arms
+from inference.motion.clips import Clip, ClipLibrary
 from inference.pipeline import DrapeOptions, PoseSequence, drape
+from training.protocol import clip_motion
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +51,7 @@ def shaped_motion(body: BodyModel, clip, phenotypes: np.ndarray, lift: bool = Tr
     lift: with the arms lifted out of the torso over the whole clip, as the service runs it
     (``inference.motion.self_contact``); drape it with ``lift_arms=False`` (already applied)."""
     shape = body.shape(np.asarray(phenotypes, np.float32)[None])
-    rotations, translation = adapt_clip(clip, body, shape)
-    rotations = lift_arms(body, shape, rotations[0], translation[0])[0] if lift else rotations[0]
-    return shape, PoseSequence(rotations, translation[0], clip.fps)
+    return shape, clip_motion(body, shape, clip, lift=lift)
 
 
 @dataclass

@@ -22,7 +22,8 @@ import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
 from inference.motion.asfamc import load_asf_amc
-from inference.motion.clips import Clip, ClipLibrary, adapt_clip
+from inference.motion.clips import Clip, ClipLibrary
+from inference.motion.importer import ClipSpec, MotionImporter, MotionLimits
 from inference.motion.retarget import ground, retarget, target_leg_length
 from inference.motion.self_contact import lift_arms
 from inference.pipeline import PoseSequence
@@ -79,9 +80,48 @@ def load_clip(clip_id: str, body: BodyModel, library: ClipLibrary | None = None)
                 leg_length_m=target_leg_length(neutral), phenotypes=np.asarray(NEUTRAL_PHENOTYPES, np.float32), ground_window_s=0.5)
 
 
+class SourceClips(ClipLibrary):
+    """The clip library of training and evaluation: the bundled clips, the given ``extra`` clips,
+    and every CMU AMC clip of ``training/sources`` (``load_clip``: retargeted onto the neutral
+    body, as the bundle's clips are built), so that ``MotionImporter`` reads them all."""
+
+    def __init__(self, body: BodyModel, extra: tuple[Clip, ...] = (), assets_dir=None):
+        super().__init__(assets_dir)
+        self.body = body
+        self._extra = {c.id: c for c in extra}
+
+    def ids(self, include_test_only: bool = True) -> list[str]:
+        sources = sorted(p.stem for p in MOCAP_DIR.glob("*/*.amc"))
+        return list(dict.fromkeys([*self._extra, *super().ids(include_test_only), *sources]))
+
+    def load(self, clip_id: str) -> Clip:
+        if clip_id in self._extra:
+            return self._extra[clip_id]
+        if clip_id not in self._cache:
+            self._cache[clip_id] = load_clip(clip_id, self.body, ClipLibrary(self.assets_dir))
+        return self._cache[clip_id]
+
+
+def clip_motion(body: BodyModel, shape: BodyShape, clip: Clip | str, frames: int | None = None, lift: bool = True) -> PoseSequence:
+    """A clip on a shaped body as the service imports it: ``MotionImporter`` (the clip adapted to
+    the body's leg length, at the clip's frame rate), its first ``frames`` frames (None: all),
+    with the arms lifted out of the torso over those frames (``lift_arms``, the pipeline's
+    default) unless ``lift`` is False; drape it with ``lift_arms=False`` then."""
+    library = SourceClips(body, extra=(clip,) if isinstance(clip, Clip) else ())
+    source = library.load(clip.id if isinstance(clip, Clip) else clip)
+    n = source.num_frames if frames is None else frames
+    if not 1 <= n <= source.num_frames:
+        raise ValueError(f"{source.id}: {n} frames asked, the clip has {source.num_frames}")
+    spec = ClipSpec(source.id, 0.0, (n - 1) / source.fps)
+    motion = MotionImporter(body, library).import_motion(spec, shape, source.fps, MotionLimits(n, n, 0))
+    if not lift:
+        return motion
+    return PoseSequence(lift_arms(body, shape, motion.rotations, motion.translation)[0], motion.translation, motion.fps)
+
+
 def case_motion(body: BodyModel, case: Case, clip: Clip | None = None) -> tuple[BodyShape, PoseSequence, int]:
-    """The case's body shape and motion: the clip retargeted to the body and its arms lifted
-    out of the torso (the service's default import), frames [0, start + frames).
+    """The case's body shape and motion (``clip_motion``: the service's import, arms lifted),
+    frames [0, start + frames).
 
     returns shape, motion (start + frames frames; the learned dynamics run from frame 0), start
     """
@@ -89,11 +129,7 @@ def case_motion(body: BodyModel, case: Case, clip: Clip | None = None) -> tuple[
     if case.start + case.frames > clip.num_frames:
         raise ValueError(f"{case.name}: the clip has {clip.num_frames} frames")
     shape = body.shape(BODIES[case.body][None])
-    rotations, translation = adapt_clip(clip, body, shape)
-    n = case.start + case.frames
-    rotations, translation = rotations[0, :n], translation[0, :n]
-    rotations = lift_arms(body, shape, rotations, translation)[0]
-    return shape, PoseSequence(rotations, translation, clip.fps), case.start
+    return shape, clip_motion(body, shape, clip, case.start + case.frames), case.start
 
 
 def lead_in_motion(rotations: np.ndarray, translation: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
