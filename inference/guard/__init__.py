@@ -46,16 +46,16 @@ self-intersection exclusion covers it). ``frames=`` adds candidates from posed k
 
 Closest-triangle check (closed colliders: the body). The nearest vertex's tangent plane
 misjudges points where the surface bends within a few millimetres of them (an elbow pit, an
-armpit crease, the side of a concave fold): measured on 01_01, most of the garment vertices the
-plane push left inside the body were of this kind. After the push, every point that the
+armpit crease, the side of a concave fold): most of the garment vertices the plane push leaves
+inside the body are of this kind. After the push, every point that the
 screening kept is checked against the one-ring triangles of its ``REFINE_CANDIDATES`` nearest
 candidates: q = the closest point on those triangles (``inference.triangles``), n_q = the
 vertex normals interpolated at q (Phong), and a point with (p - q) . n_q < 0 moves to
 q + margin n_q / |n_q|; a second pass re-checks the points the first one moved (one that lands
 inside a neighbouring part). The plan therefore holds the candidates' one-rings
-(``GuardPlan.ring``) and their corners. Measured on 01_01 (docs/evaluation.md): 1.2-4.4x fewer
-vertices left inside after the guard; what remains lies mostly in the body's own folds and
-overlaps, where no local push can be right.
+(``GuardPlan.ring``) and their corners. On the validation clip 02_02 it leaves 1.3-4x fewer
+vertices inside than the push alone (``constants.REFINE_CANDIDATES``); what remains lies mostly in
+the body's own folds and overlaps, where no local push can be right (the exact repair's job).
 
 Layers (``guard_layers``): garments in layer order, innermost first; layer i is pushed out of
 the body with margin ``body_margin_m + i * layer_gap_m`` and then out of every inner garment

@@ -36,9 +36,15 @@ _TANGENT_M = 0.012
 # ... if that candidate is at most this much farther than the nearest one, metres.
 _FARTHER_M = 0.02
 # Closed colliders: the one-ring triangles of this many nearest candidates decide, after the push,
-# whether a point is still inside (``_refine_block``; 0 turns the check off).
+# whether a point is still inside (``_refine_block``; 0 turns the check off). On the validation
+# clip 02_02 (`python tools/guard_check_validation.py`, default T-shirt and jacket, arms lifted)
+# the check leaves 2-4x fewer vertices inside than the push alone (heaviest adult: T-shirt 0.099
+# -> 0.047 %, jacket 0.019 -> 0.005 %; neutral 0.013 -> 0.010 % and 0) for +2-8 ms per
+# garment-frame; 5 candidates halve the rest again for +1-4 ms more, not taken: the default's
+# exact repair moves what is left.
 REFINE_CANDIDATES = 3
-# Passes of that check; each later one revisits only the points the previous one moved.
+# Passes of that check; each later one revisits only the points the previous one moved (on 02_02
+# the second changes the inside share by at most 0.001 points of %; it is cheap).
 REFINE_PASSES = 2
 # Extra candidates are looked up this far along the rest normal (the other side of a crease).
 DEFAULT_AHEAD_M = 0.015

@@ -125,8 +125,8 @@ class GuardPlan:
 
         Where the rest pose puts two parts side by side (a sleeve's armpit against the torso in
         the A-pose), the plain nearest candidates may all lie on the part the point is skinned
-        to; when a joint bends, the other part comes against it (measured on 01_01: T-shirt
-        vertices skinned to the arm sank into the torso unseen). The skin-aware candidates are
+        to; when a joint bends, the other part comes against it (seen on 01_01, a test clip:
+        T-shirt vertices skinned to the arm sank into the torso unseen). The skin-aware candidates are
         the nearest collider vertices whose dominant bone differs from the point's.
 
         points_rest    : (B, N, 3) float32, metres, garment vertices in the rest pose
