@@ -13,11 +13,10 @@ import numpy as np
 from inference.body import BodyModel
 from inference.garment import GarmentCatalog
 from inference.metrics import collision_rates
-from inference.motion.clips import adapt_clip
 from inference.motion.self_contact import lift_arms
 from inference.options import DrapeOptions
 from inference.pipeline import PoseSequence, drape
-from training.protocol import BODIES, load_clip
+from training.protocol import BODIES, clip_motion, load_clip
 
 EVERY = 2  # 02_02 has 75 frames: 38 counted
 
@@ -31,8 +30,8 @@ def main() -> None:
     print("|---|---|---|---|---|")
     for name in ("neutral", "heavy"):
         shape = body.shape(np.asarray(BODIES[name], np.float32)[None])
-        rot, trans = adapt_clip(clip, body, shape)
-        rot, trans = rot[0], trans[0]
+        imported = clip_motion(body, shape, clip, lift=False)  # the service's import; the margins are lifted here
+        rot, trans = imported.rotations, imported.translation
         for margin in (None, 0.005, 0.010, 0.015):
             if margin is None:
                 lifted, angle = rot, 0.0

@@ -15,10 +15,9 @@ import inference.guard.plan as plan_module
 from inference.body import BodyModel
 from inference.garment import GarmentCatalog
 from inference.metrics import collision_rates
-from inference.motion.clips import adapt_clip
 from inference.options import DrapeOptions
-from inference.pipeline import PoseSequence, drape
-from training.protocol import BODIES, load_clip
+from inference.pipeline import drape
+from training.protocol import BODIES, clip_motion, load_clip
 
 EVERY = 2
 VARIANTS = {"no far candidates": (plan_module.DYNAMIC_REGION_M, 0.02), "reach 30 cm, 2 cm cells (default)": (0.30, 0.02),
@@ -33,8 +32,7 @@ def main() -> None:
     print("|---|---|---|---|---|")
     for name in ("neutral", "heavy"):
         shape = body.shape(np.asarray(BODIES[name], np.float32)[None])
-        rot, trans = adapt_clip(clip, body, shape)
-        motion = PoseSequence(np.ascontiguousarray(rot[0]), np.ascontiguousarray(trans[0]), clip.fps)
+        motion = clip_motion(body, shape, clip, lift=False)  # the drape lifts the arms (its default)
         for label, (reach, voxel) in VARIANTS.items():
             plan_module.DYNAMIC_REACH_M, plan_module.DYNAMIC_VOXEL_M = reach, voxel
             out = drape(body, shape, motion, [tshirt], DrapeOptions(fit="retarget", dynamics="none", collisions="check"))
