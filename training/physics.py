@@ -40,8 +40,6 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 import torch
 
-from training.candidates import body_candidates  # noqa: F401  TEMP re-export
-
 log = logging.getLogger(__name__)
 
 GRAVITY_M_S2 = 9.81

@@ -37,11 +37,11 @@ def _git_commit() -> str:
 
 def main(argv: list[str] | None = None) -> None:
     from inference.garment import GarmentCatalog
-    from inference.motion.clips import ClipLibrary, adapt_clip
+    from training.protocol import SourceClips, clip_motion
 
     p = argparse.ArgumentParser(prog="python -m training.simulate", description="Physics reference simulation of a catalog garment along a motion clip.")
     p.add_argument("--garment", required=True, help="garment id (assets/garments/<id>)")
-    p.add_argument("--clip", required=True, help="motion clip id (assets/motions)")
+    p.add_argument("--clip", required=True, help="motion clip id (assets/motions, or a CMU clip of training/sources)")
     p.add_argument("--frames", type=int, default=60, help="frames to simulate from --start (default 60)")
     p.add_argument("--start", type=int, default=0, help="first clip frame")
     p.add_argument("--phenotypes", type=float, nargs=6, default=NEUTRAL_PHENOTYPES.tolist(), metavar="P", help="body phenotypes (default neutral)")
@@ -62,10 +62,10 @@ def main(argv: list[str] | None = None) -> None:
     asset = GarmentCatalog.load().get(args.garment)
     phen = np.asarray(args.phenotypes, np.float32)
     shape = body.shape(phen[None])
-    clip = ClipLibrary().load(args.clip)
-    rotations, translation = adapt_clip(clip, body, shape)
-    sl = slice(args.start, args.start + args.frames)
-    rotations, translation = rotations[0, sl], translation[0, sl]
+    clip = SourceClips(body).load(args.clip)
+    # the service's import of the clip (no arm lift: the reference simulates the clip as captured)
+    motion = clip_motion(body, shape, clip, min(args.start + args.frames, clip.num_frames), lift=False)
+    rotations, translation = motion.rotations[args.start:], motion.translation[args.start:]
 
     t0 = time.perf_counter()
     drape, drape_log = quasi_static_drape(asset, body, phen, settings)
