@@ -70,7 +70,10 @@ DEFAULT_REACH_M = 0.08
 # armpit the nearest torso point lies across a concave crease and its plane misjudges.
 DEFAULT_TANGENT_M = 0.015
 # Rest-pose thinning of the torso points (their planes judge: anny's mean edge, ~1.2 cm) and of
-# the arm points (they only sample the depth; 2 cm cells: same angles to 0.2 deg on 01_01, -30 % time).
+# the arm points (they only sample the depth). Arm cells on the validation clip 02_02
+# (`python tools/arm_voxel_validation.py`): 2 cm against 1 cm keeps about half the arm points and
+# changes the abduction by 0.13-0.22 deg on average (neutral, heaviest; up to 5.5 deg in a single
+# frame); 3 cm changes it by 0.19-0.22 deg with a third of the points.
 TORSO_VOXEL_M = 0.012
 ARM_VOXEL_M = 0.02
 # Largest abduction per iteration and in total, radians.
