@@ -22,14 +22,14 @@ never gets less than it needs; neighbours do not snap). In the pose contract of
 ``inference.body`` a world rotation Q of bone c is the local change D_c <- A^T Q A D_c with
 A = W_parent R_parent^T R_c (the bone's world rotation at D = I).
 
-Measured on 01_01 (lifted at 30 fps, counted every 8th frame with
+Reported on the test clip 01_01 (no constant is chosen there; lifted at 30 fps, every 8th frame, with
 ``inference.metrics.self_intersecting_vertices``), skin vertices inside another part per frame,
 mean: neutral 63.8 -> 33.0, heaviest adult 153.8 -> 17.9, lightest 13.7 -> 13.7 (untouched);
 abduction mean / max: neutral 2.9° / 14.3°, heaviest 15.7° / 34.4°, lightest 0°.
 
 Points: the torso and arm skin vertices thinned to one per ``TORSO_VOXEL_M`` / ``ARM_VOXEL_M``
 cell in the rest pose; normals are the rest normals rotated by the blended skinning transform.
-Cost on 01_01 (688 frames, one thread): 1.0-1.4 ms per frame (neutral / heaviest body), plus
+Cost on 01_01 (688 frames, one thread, reported): 1.0-1.4 ms per frame (neutral / heaviest body), plus
 ~11 ms of per-body set-up (``ArmLifter``, cached per body shape by ``arm_lifter``).
 Units: metres, radians.
 """
