@@ -198,10 +198,19 @@ def load_training_clip(clip_id: str, body: BodyModel, neutral, mocap_dir: Path =
         source = load_asf_amc(*clip_paths(clip_id, mocap_dir))
     if max_frames is not None:  # source frames at the source rate (CMU: 120 fps)
         source = source.frames(0, int(max_frames * source.fps / FPS) + 1)
+    rotations, translation = on_neutral_body(source, body, neutral)
+    T = len(rotations) if max_frames is None else min(max_frames, len(rotations))
+    return rotations[:T], translation[:T]
+
+
+def on_neutral_body(source, body: BodyModel, neutral) -> tuple[np.ndarray, np.ndarray]:
+    """A parsed mocap clip (BVH or ASF/AMC) retargeted onto the neutral body at 30 fps, feet on
+    z = 0 over the first half second: how ``training.assets.build_motions`` builds the bundled
+    clips, and how training and evaluation bring in the CMU clips they read from
+    ``training/sources``. returns rotations (T, 31, 3) radians, translation (T, 3) metres."""
     result = retarget(source, body, neutral, fps=FPS, grounded=False)
     translation = ground(body, neutral, result.rotations[None], result.translation[None], FPS, 0.5)[0]
-    T = len(result.rotations) if max_frames is None else min(max_frames, len(result.rotations))
-    return result.rotations[:T], translation[:T]
+    return result.rotations, translation
 
 
 @dataclass

@@ -24,10 +24,10 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape
 from inference.motion.asfamc import load_asf_amc
 from inference.motion.clips import Clip, ClipLibrary
 from inference.motion.importer import ClipSpec, MotionImporter, MotionLimits
-from inference.motion.retarget import ground, retarget, target_leg_length
+from inference.motion.retarget import target_leg_length
 from inference.motion.self_contact import lift_arms
 from inference.pipeline import PoseSequence
-from training.datasets import FPS, MOCAP_DIR, TRAIN_CLIPS, clip_paths
+from training.datasets import FPS, MOCAP_DIR, TRAIN_CLIPS, clip_paths, on_neutral_body
 
 BODIES: dict[str, np.ndarray] = {
     "neutral": np.asarray(NEUTRAL_PHENOTYPES, np.float32),
@@ -73,10 +73,8 @@ def load_clip(clip_id: str, body: BodyModel, library: ClipLibrary | None = None)
     if clip_id in library.ids():
         return library.load(clip_id)
     neutral = body.shape(NEUTRAL_PHENOTYPES[None])
-    source = load_asf_amc(*clip_paths(clip_id, MOCAP_DIR))
-    result = retarget(source, body, neutral, fps=FPS, grounded=False)
-    translation = ground(body, neutral, result.rotations[None], result.translation[None], FPS, 0.5)[0]
-    return Clip(id=clip_id, rotations=result.rotations.astype(np.float32), translation=translation.astype(np.float32), fps=FPS,
+    rotations, translation = on_neutral_body(load_asf_amc(*clip_paths(clip_id, MOCAP_DIR)), body, neutral)
+    return Clip(id=clip_id, rotations=rotations.astype(np.float32), translation=translation.astype(np.float32), fps=FPS,
                 leg_length_m=target_leg_length(neutral), phenotypes=np.asarray(NEUTRAL_PHENOTYPES, np.float32), ground_window_s=0.5)
 
 
