@@ -272,7 +272,7 @@ def build_garment(spec: GarmentSpec, body: BodyModel, nb: NeutralBody, out_dir: 
     # Weights of the body surface the garment faces: project from a point SKIN_PROBE_DEPTH_M
     # inside the garment along its inward normal. The plain closest triangle of a vertex on the
     # chest side of the armpit is often the arm's (A-pose); skinned to the arm, it sinks into the
-    # torso when the arm comes down (measured on 01_01: ~2 % of T-shirt vertices).
+    # torso when the arm comes down (seen on the test clip 01_01: ~2 % of T-shirt vertices).
     normals = vertex_normals(template[None].astype(np.float32), mesh.faces)[0].astype(np.float64)
     skin = fit.project_skin_weights(template - SKIN_PROBE_DEPTH_M * normals, nb.vertices, nb.skin_faces, nb.weights)
     fold = [nb.bone_names.index(n) for n in FOLDED_BONES]
