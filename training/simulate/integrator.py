@@ -32,7 +32,7 @@ from inference.mesh import vertex_normals
 from training.candidates import body_candidates
 from training.physics import GRAVITY_M_S2, ClothGeometry, collision_energy, energy_terms, inertia_energy
 from training.simulate.contacts import Collider, RestPoseContacts
-from training.simulate.optimise import _LinearSolver, _value_and_grad, lbfgs_minimize, newton_minimize
+from training.simulate.optimise import _LinearSolver, _value_and_grad, convergence_report, lbfgs_minimize, newton_minimize
 from training.simulate.problem import HessianAssembly, StepProblem
 from training.simulate.settings import SimulationLog, SolveLog, SolverSettings, tolerance_newtons
 
@@ -78,13 +78,7 @@ def solve_step(problem: StepProblem, x_start: torch.Tensor, tolerance_n: float, 
     return x, {
         "iterations": iterations,
         "evaluations": evaluations,
-        "energy_start_j": float(e0),
-        "energy_end_j": float(e1),
-        "grad_norm_start_n": float(g0.norm()),
-        "grad_norm_end_n": float(g1.norm()),
-        "max_force_n": float(g1.norm(dim=-1).max()),
-        "tolerance_n": float(tolerance_n),
-        "converged": bool(g1.abs().max() <= tolerance_n),
+        **convergence_report(e0, g0, e1, g1, tolerance_n),
         "stop": rep["stop"],
         "last_step_m": rep["last_step_m"],
         "seconds": time.perf_counter() - t0,

@@ -38,6 +38,21 @@ def _value_and_grad(energy: Callable[[torch.Tensor], torch.Tensor], x: torch.Ten
     return e.detach(), g
 
 
+def convergence_report(e0: torch.Tensor, g0: torch.Tensor, e1: torch.Tensor, g1: torch.Tensor, tolerance_n: float) -> dict:
+    """The fields every solve logs (``SolveLog``): energies (J) and gradient norms (N) at the start
+    and the end, the largest per-vertex residual force (N), and whether every force component is
+    within ``tolerance_n``."""
+    return {
+        "energy_start_j": float(e0),
+        "energy_end_j": float(e1),
+        "grad_norm_start_n": float(g0.norm()),
+        "grad_norm_end_n": float(g1.norm()),
+        "max_force_n": float(g1.norm(dim=-1).max()),
+        "tolerance_n": float(tolerance_n),
+        "converged": bool(g1.abs().max() <= tolerance_n),
+    }
+
+
 def minimize_energy(energy: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor, tolerance_n: float, max_iterations: int = 200, history_size: int = 20) -> tuple[torch.Tensor, dict]:
     """Minimise a scalar energy (J) of positions (1, V, 3) metres by L-BFGS with strong-Wolfe line search.
 
@@ -73,13 +88,7 @@ def minimize_energy(energy: Callable[[torch.Tensor], torch.Tensor], x0: torch.Te
     report = {
         "iterations": int(state.get("n_iter", 0)),
         "evaluations": int(state.get("func_evals", 0)) + 2,
-        "energy_start_j": float(e0),
-        "energy_end_j": float(e1),
-        "grad_norm_start_n": float(g0.norm()),
-        "grad_norm_end_n": float(g1.norm()),
-        "max_force_n": float(g1.norm(dim=-1).max()),
-        "tolerance_n": float(tolerance_n),
-        "converged": bool(g1.abs().max() <= tolerance_n),
+        **convergence_report(e0, g0, e1, g1, tolerance_n),
         "seconds": time.perf_counter() - t0,
     }
     if not report["energy_end_j"] <= report["energy_start_j"]:  # strong-Wolfe steps only decrease it
