@@ -13,7 +13,7 @@ import numpy as np
 
 import inference.motion.self_contact as sc
 from inference.body import BodyModel
-from training.protocol import BODIES, clip_motion
+from training.protocol import validation_motions
 
 VOXELS_M = (0.01, 0.02, 0.03)
 
@@ -22,9 +22,7 @@ def main() -> None:
     body = BodyModel.load()
     print("| body | arm cell cm | arm points | abduction mean deg | |angle - 1 cm| mean / max deg | lift ms per frame |")
     print("|---|---|---|---|---|---|")
-    for name in ("neutral", "heavy"):
-        shape = body.shape(np.asarray(BODIES[name], np.float32)[None])
-        motion = clip_motion(body, shape, "02_02", lift=False)
+    for name, shape, motion in validation_motions(body, lift=False):
         angles = {}
         for voxel in VOXELS_M:
             sc.ARM_VOXEL_M = voxel

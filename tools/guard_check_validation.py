@@ -17,7 +17,7 @@ from inference.garment import GarmentCatalog
 from inference.metrics import collision_rates
 from inference.options import DrapeOptions
 from inference.pipeline import drape
-from training.protocol import BODIES, clip_motion
+from training.protocol import BODIES, validation_motions
 
 EVERY = 2
 VARIANTS = {"push only": ("push", 3, 2), "check, 1 candidate, 2 passes": ("check", 1, 2), "check, 3 candidates, 1 pass": ("check", 3, 1),
@@ -30,9 +30,7 @@ def main() -> None:
     neutral = body.shape(np.asarray(BODIES["neutral"], np.float32)[None])
     print("| garment | body | variant | clean inside % after the guard | guard ms per frame |")
     print("|---|---|---|---|---|")
-    for name in ("neutral", "heavy"):
-        shape = body.shape(np.asarray(BODIES[name], np.float32)[None])
-        motion = clip_motion(body, shape, "02_02")
+    for name, shape, motion in validation_motions(body):
         for garment_id in ("tshirt", "jacket"):
             for label, (level, candidates, passes) in VARIANTS.items():
                 push_module.REFINE_CANDIDATES, push_module.REFINE_PASSES = candidates, passes

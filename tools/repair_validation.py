@@ -18,7 +18,7 @@ from inference.body import BodyModel
 from inference.garment import GarmentCatalog
 from inference.options import DrapeOptions
 from inference.pipeline import drape
-from training.protocol import BODIES, clip_motion
+from training.protocol import BODIES, validation_motions
 
 CANDIDATES = (8, 16, 32, 64)
 FAR_FACTORS = (16,)
@@ -31,9 +31,7 @@ def main() -> None:
     neutral = body.shape(np.asarray(BODIES["neutral"], np.float32)[None])
     print("| garment | body | k | far factor | inside before | left inside | move median / p95 / max mm | repair ms per frame |")
     print("|---|---|---|---|---|---|---|---|")
-    for name in ("neutral", "heavy"):
-        shape = body.shape(np.asarray(BODIES[name], np.float32)[None])
-        motion = clip_motion(body, shape, "02_02", lift=True)
+    for name, shape, motion in validation_motions(body):
         for garment_id in GARMENTS:
             garment = catalog.get(garment_id)
             out = drape(body, shape, motion, [garment], DrapeOptions(collisions="check", lift_arms=False), neutral=neutral)

@@ -117,6 +117,16 @@ def clip_motion(body: BodyModel, shape: BodyShape, clip: Clip | str, frames: int
     return PoseSequence(lift_arms(body, shape, motion.rotations, motion.translation)[0], motion.translation, motion.fps)
 
 
+def validation_motions(body: BodyModel, bodies: tuple[str, ...] = ("neutral", "heavy"), lift: bool = True):
+    """The validation clip (CMU 02_02, ``SPLITS["validation"]``) on each of ``bodies`` (keys of
+    ``BODIES``) as the service imports it (``clip_motion``): yields (body name, shape, motion).
+    What the tools that choose a constant measure on."""
+    clip = load_clip(SPLITS["validation"][0].clip, body)
+    for name in bodies:
+        shape = body.shape(np.asarray(BODIES[name], np.float32)[None])
+        yield name, shape, clip_motion(body, shape, clip, lift=lift)
+
+
 def case_motion(body: BodyModel, case: Case, clip: Clip | None = None) -> tuple[BodyShape, PoseSequence, int]:
     """The case's body shape and motion (``clip_motion``: the service's import, arms lifted),
     frames [0, start + frames).

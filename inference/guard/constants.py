@@ -39,7 +39,7 @@ _FARTHER_M = 0.02
 # whether a point is still inside (``_refine_block``; 0 turns the check off). On the validation
 # clip 02_02 (`python tools/guard_check_validation.py`, default T-shirt and jacket, arms lifted)
 # the check leaves 2-4x fewer vertices inside than the push alone (heaviest adult: T-shirt 0.099
-# -> 0.047 %, jacket 0.019 -> 0.005 %; neutral 0.013 -> 0.010 % and 0) for +2-8 ms per
+# -> 0.047 %, jacket 0.019 -> 0.005 %; neutral 0.013 -> 0.010 % and 0) for +1-8 ms per
 # garment-frame; 5 candidates halve the rest again for +1-4 ms more, not taken: the default's
 # exact repair moves what is left.
 REFINE_CANDIDATES = 3
