@@ -90,3 +90,35 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     assert (chosen["fit"], chosen["dynamics"]) == ("learned", "learned")
     text = judge.markdown({"validation": [row]}, judge.select_defaults([row]), "test")
     assert "| trousers |" in text and "newton" in text
+
+
+def _realism(folded=1.0, p1=0.9, p99=1.1, rough=5.0, jump=0.01):
+    return {"folded_pct": folded, "edge_p1": p1, "edge_p99": p99, "roughness_deg": rough, "jump_max_m": jump}
+
+
+def test_realism_fails_only_when_worse_than_the_reference_and_the_baseline():
+    from training.judge import worse_on_realism
+
+    reference, retarget = _realism(p1=0.7, p99=1.4), _realism(p1=1.0, p99=1.0)
+    # a skinned mesh keeps its edges at rest length: far from the simulation's percentiles, like the baseline
+    assert worse_on_realism(_realism(p1=1.0, p99=1.0), reference, retarget) == []
+    # a crumpled sleeve: folds and compressed edges beyond both anchors
+    crumpled = _realism(folded=9.0, p1=0.35, p99=1.0, rough=12.0)
+    assert worse_on_realism(crumpled, reference, retarget) == ["folded_pct", "edge_p1", "roughness"]
+    # spikes: a jump many times the reference's and the baseline's
+    assert worse_on_realism(_realism(jump=0.2), reference, retarget) == ["jump"]
+
+
+def test_selection_uses_the_mean_over_the_validation_cases():
+    from training import judge
+
+    def row(case, errors):
+        return {"garment": "tshirt", "case": case, "reference": {"dressed": True},
+                "methods": {m: {"error_cm": e, "realism_failures": []} for m, e in errors.items()}}
+
+    # learned loses on one body and wins by more on another: its mean is the lowest
+    rows = [row("a", {"learned": 3.0, "learned-fit": 4.0, "retarget": 2.5, "lbs": 4.0}),
+            row("b", {"learned": 2.0, "learned-fit": 4.0, "retarget": 3.5, "lbs": 5.0})]
+    assert judge.select_defaults(rows)["tshirt"]["dynamics"] == "learned"
+    rows[1]["methods"]["learned"]["error_cm"] = 3.1  # mean 3.05 > retarget's 3.0
+    assert judge.select_defaults(rows)["tshirt"]["fit"] == "retarget"

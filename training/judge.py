@@ -22,11 +22,15 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                diagnostics only; ms per garment-frame of the pipeline on this machine
 
 Selection (validation split only; ``select_defaults``): a garment's default is the learned
-candidate ('learned', else 'learned-fit') with the lowest mean error when it is closer to the
-reference than both baselines on every validation case and passes the realism margins
-(``REALISM_MARGINS``, against the reference's own values) on all of them; otherwise the
-retarget baseline (the plain LBS of the neutral template ignores the body shape, so it is a
-baseline, never a default).
+candidate ('learned', else 'learned-fit') with the lowest mean error when its mean error over the
+validation cases is below both baselines' means and it is not worse on realism on any of them;
+otherwise the retarget baseline (the plain LBS of the neutral template ignores the body shape, so
+it is a baseline, never a default). "Not worse on realism" is read against both anchors: a metric
+fails only where the method is worse than the reference by its ``REALISM_MARGINS`` margin *and*
+worse than the retarget baseline on the same frames by its ``RETARGET_TOLERANCE`` (every method,
+the baselines included, misses the reference's edge percentiles, since a simulation stretches and
+compresses edges that a skinned mesh keeps at rest length; a margin the baseline itself fails
+cannot tell a crumpled sleeve from a clean one, the second anchor can). Both lists are reported.
 
 CLI:
     python -m training.judge --split validation --write-defaults assets/models/defaults.json
@@ -78,20 +82,39 @@ REALISM_MARGINS = {
 }
 
 
-def realism_failures(metrics: dict, reference: dict) -> list[str]:
-    """Names of the realism margins a method's ``realism`` dict breaks against the reference's."""
+# ... and against the retarget baseline on the same frames (the second anchor, module docstring):
+RETARGET_TOLERANCE = {
+    "folded_pct": 1.0,       # folded faces at most 1 percentage point above the retarget's
+    "edge_p1": 0.05,         # 1st-percentile edge ratio at most 0.05 below the retarget's
+    "edge_p99": 0.05,        # 99th-percentile edge ratio at most 0.05 above the retarget's
+    "roughness_ratio": 1.15,  # RMS hinge angle at most 1.15x the retarget's
+    "jump_ratio": 1.25,      # largest frame-to-frame jump at most 1.25x the retarget's
+}
+
+
+def realism_failures(metrics: dict, anchor: dict, margins: dict[str, float] = REALISM_MARGINS) -> list[str]:
+    """Names of the realism metrics on which ``metrics`` is worse than ``anchor`` (both
+    ``inference.metrics.realism`` dicts) by more than ``margins``: additive for folded % and the
+    edge percentiles, multiplicative for roughness and jumps."""
     out = []
-    if metrics["folded_pct"] > reference["folded_pct"] + REALISM_MARGINS["folded_pct"]:
+    if metrics["folded_pct"] > anchor["folded_pct"] + margins["folded_pct"]:
         out.append("folded_pct")
-    if metrics["edge_p1"] < reference["edge_p1"] - REALISM_MARGINS["edge_p1"]:
+    if metrics["edge_p1"] < anchor["edge_p1"] - margins["edge_p1"]:
         out.append("edge_p1")
-    if metrics["edge_p99"] > reference["edge_p99"] + REALISM_MARGINS["edge_p99"]:
+    if metrics["edge_p99"] > anchor["edge_p99"] + margins["edge_p99"]:
         out.append("edge_p99")
-    if metrics["roughness_deg"] > REALISM_MARGINS["roughness_ratio"] * reference["roughness_deg"]:
+    if metrics["roughness_deg"] > margins["roughness_ratio"] * anchor["roughness_deg"]:
         out.append("roughness")
-    if metrics["jump_max_m"] > REALISM_MARGINS["jump_ratio"] * reference["jump_max_m"]:
+    if metrics["jump_max_m"] > margins["jump_ratio"] * anchor["jump_max_m"]:
         out.append("jump")
     return out
+
+
+def worse_on_realism(metrics: dict, reference: dict, retarget: dict) -> list[str]:
+    """The realism metrics a method fails (module docstring): worse than the reference by
+    ``REALISM_MARGINS`` and worse than the retarget baseline by ``RETARGET_TOLERANCE``."""
+    vs_retarget = set(realism_failures(metrics, retarget, RETARGET_TOLERANCE))
+    return [f for f in realism_failures(metrics, reference) if f in vs_retarget]
 
 
 def slid_pct(reference: np.ndarray, retarget: np.ndarray, body_frames: np.ndarray, body_faces: np.ndarray) -> float:
@@ -179,11 +202,14 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
         }
         if "friction 0" in row["reference"]["uncertainty_cm"]:
             r["error_friction0_cm"] = mean_error_cm(v_after, ref0)
-        r["realism_failures"] = realism_failures(r["realism"], ref_realism)
+        r["realism_vs_reference"] = realism_failures(r["realism"], ref_realism)
         row["methods"][name] = r
         if name == "retarget":
             row["reference"]["slid_pct"] = slid_pct(ref, v_after, body_frames, body.faces)
     row["reference"]["dressed"] = row["reference"].get("slid_pct", 0.0) <= MAX_SLID_PCT
+    base = row["methods"].get("retarget")
+    for r in row["methods"].values():
+        r["realism_failures"] = worse_on_realism(r["realism"], ref_realism, base["realism"]) if base else r["realism_vs_reference"]
     return row
 
 
@@ -208,18 +234,18 @@ def select_defaults(rows: list[dict]) -> dict[str, dict]:
             continue
         verdicts = []
         for cand in sorted((m for m in LEARNED_CANDIDATES if m in err), key=err.get):
-            closer = all(r["methods"][cand]["error_cm"] < min(r["methods"][b]["error_cm"] for b in BASELINES if b in r["methods"]) for r in mine)
+            closer = all(err[cand] < err[b] for b in BASELINES if b in err)
             fails = sorted({f for r in mine for f in r["methods"][cand]["realism_failures"]})
             if closer and not fails:
                 opts = METHODS[cand]
                 out[garment] = {"fit": opts.fit, "dynamics": opts.dynamics,
-                                "reason": f"{cand}: closest to the newton reference on validation ({cases}; {errors}), realism within margins"}
+                                "reason": f"{cand}: closest to the newton reference on validation (mean over {cases}; {errors}), not worse on realism"}
                 break
             verdicts.append(f"{cand} " + ("not closer than both baselines" if not closer else "") + (" and " if not closer and fails else "")
-                            + (f"fails the realism margins ({', '.join(fails)})" if fails else ""))
+                            + (f"worse on realism ({', '.join(fails)})" if fails else ""))
         else:
             out[garment] = {"fit": "retarget", "dynamics": "none",
-                            "reason": f"baseline: on validation ({cases}; {errors}) " + "; ".join(verdicts)}
+                            "reason": f"baseline: on validation (mean over {cases}; {errors}) " + "; ".join(verdicts)}
         out[garment]["evidence"] = "docs/evaluation.md"
     return out
 
@@ -244,16 +270,20 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         "frame-to-frame vertex jump (cm). Collisions: % of garment vertices inside the body (exact winding number), "
         "before / after the final collision stage, away from body self-intersections. Energies: strain + bending per "
         "frame before the collision stage, J (diagnostics). ms: pipeline wall time per garment-frame on this machine, "
-        "collision stages included. Realism failures: the margins of `REALISM_MARGINS` against the reference.",
+        "collision stages included. Realism: 'vs newton' lists the metrics worse than the reference by the margins of "
+        "`REALISM_MARGINS`; 'worse' those that are also worse than the retarget baseline by `RETARGET_TOLERANCE` "
+        "(the failures that count for the default).",
         "",
-        "Splits: validation = CMU 02_02 (chooses the defaults); test = CMU 01_01 and CMU 02_07 (reported only). "
+        "Splits: validation = CMU 02_02 frames 30-50 on all three bodies (chooses the defaults: mean error over the three "
+        "cases below both baselines' and no realism failure); test = CMU 01_01 frames 120-140 (neutral, heavy) and CMU 02_07 "
+        "frames 60-80 (light-tall), reported only. "
         "Bodies: neutral, heavy [1,1,1,1,1,1], light-tall [0,.77,0,1,1,0].",
         "",
     ]
     for split, rows in results.items():
         lines += [f"## {split.capitalize()}", ""]
-        lines += ["| garment | case | method | error cm (mu 0.3) | error cm (mu 0) | edge p1 | edge p99 | folded % | rough deg | jump max cm | inside % before / after | strain+bend J | ms/frame | realism failures |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += ["| garment | case | method | error cm (mu 0.3) | error cm (mu 0) | edge p1 | edge p99 | folded % | rough deg | jump max cm | inside % before / after | strain+bend J | ms/frame | realism vs newton | worse |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             ref = r["reference"]
             rr = ref["realism"]
@@ -264,14 +294,14 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
             lines.append(f"| {r['garment']} | {r['case']} | **newton** ({ref['seconds_per_frame']:.1f} s/frame; spread {unc_txt}{dressed}) | 0 | "
                          f"{_fmt(unc['friction 0']) if 'friction 0' in unc else '-'} | {_fmt(rr['edge_p1'])} | {_fmt(rr['edge_p99'])} | {_fmt(rr['folded_pct'])} | "
                          f"{_fmt(rr['roughness_deg'], 1)} | {_fmt(100 * rr['jump_max_m'], 1)} | {_fmt(ref['collisions']['inside_pct_clean'], 3)} | "
-                         f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | - | |")
+                         f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | - | | |")
             for name, m in r["methods"].items():
                 mr = m["realism"]
                 e = m["energies"]
                 lines.append(f"| {r['garment']} | {r['case']} | {name} | {_fmt(m['error_cm'])} | {_fmt(m['error_friction0_cm']) if 'error_friction0_cm' in m else '-'} | "
                              f"{_fmt(mr['edge_p1'])} | {_fmt(mr['edge_p99'])} | {_fmt(mr['folded_pct'])} | {_fmt(mr['roughness_deg'], 1)} | "
                              f"{_fmt(100 * mr['jump_max_m'], 1)} | {_fmt(m['collisions_before']['inside_pct_clean'], 3)} / {_fmt(m['collisions_after']['inside_pct_clean'], 3)} | "
-                             f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | {_fmt(m['ms_per_frame'], 1)} | {', '.join(m['realism_failures'])} |")
+                             f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | {_fmt(m['ms_per_frame'], 1)} | {', '.join(m['realism_vs_reference'])} | {', '.join(m['realism_failures'])} |")
         lines.append("")
         summary = _summary(rows)
         if summary:
