@@ -10,7 +10,9 @@ from inference.garment import GarmentCatalog  # noqa: E402
 from inference.metrics import inside_mask  # noqa: E402
 from inference.pipeline import DrapeOptions, PoseSequence, drape  # noqa: E402
 from training.protocol import SMOKE, case_motion  # noqa: E402
-from training.reference import ReferenceSettings, bending_stiffness_per_edge, lead_in_motion, simulate_case, waistband_vertices  # noqa: E402
+from training.reference import (  # noqa: E402
+    COLLAR_DEPTH_M, ReferenceSettings, bending_stiffness_per_edge, collar_vertices, kinematic_vertices, lead_in_motion, simulate_case,
+    waistband_vertices)
 
 
 def test_bending_stiffness_maps_snug_eq_5_10():
@@ -122,3 +124,22 @@ def test_selection_uses_the_mean_over_the_validation_cases():
     assert judge.select_defaults(rows)["tshirt"]["dynamics"] == "learned"
     rows[1]["methods"]["learned"]["error_cm"] = 3.1  # mean 3.05 > retarget's 3.0
     assert judge.select_defaults(rows)["tshirt"]["fit"] == "retarget"
+
+
+def test_kinematic_vertices_are_the_waistband_and_the_open_jackets_neckline():
+    catalog = GarmentCatalog.load()
+    jacket = catalog.get("jacket")
+    neck = collar_vertices(jacket)
+    faces = np.asarray(jacket.faces)
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    border = np.unique(uniq[count == 1])
+    z = jacket.rest_vertices[:, 2]
+    # a short stretch of the border at the top: the fronts, the hem and the cuffs stay free
+    assert 10 <= len(neck) < 0.02 * jacket.num_vertices and np.isin(neck, border).all()
+    assert z[neck].min() >= z.max() - COLLAR_DEPTH_M - 1e-6
+    np.testing.assert_array_equal(kinematic_vertices(jacket), np.sort(neck))
+    trousers = catalog.get("trousers")
+    np.testing.assert_array_equal(kinematic_vertices(trousers), np.sort(waistband_vertices(trousers)))
+    for g in ("tshirt", "longsleeve", "dress"):
+        assert len(kinematic_vertices(catalog.get(g))) == 0

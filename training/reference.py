@@ -35,6 +35,14 @@ trousers slid down to the ankles within a second (seen on the contact sheet of 0
 waist opening (the border loop highest in the rest shape, ``waistband_vertices``) is therefore
 kinematic: it follows the skinned retarget fit, as simulators pin a waistband (HOOD, ContourCraft).
 
+Necklines: the open-front jacket (``category`` 'outer') is the jacket of a suit whose collar was
+left out of the asset; its raw neckline sits loose around the neck, and the simulated jacket slid
+back and down off the shoulders within a second of the validation walk (02_02, neutral: 14 % of
+its vertices more than 5 cm farther from the body than the skinned fit, seen on its contact
+sheet). The collar that holds a jacket's neckline on the shoulders is modelled the same way as a
+waistband: the neckline (``collar_vertices``) follows the skinned retarget fit; the fronts, hem
+and sleeves stay free.
+
 Sequence: the ``.mhclo`` retarget of the garment on the shaped body in the rest pose, a lead-in
 from the rest pose to the clip's first pose (``lead_in_frames``, smoothstep per joint), a settle
 period holding the first pose (``settle_frames``: the garment comes to rest under gravity), then
@@ -126,6 +134,11 @@ def waistband_vertices(asset: GarmentAsset) -> np.ndarray:
     with the highest mean z in the rest shape. Other categories: none. returns (P,) int64."""
     if asset.category != "bottom":
         return np.zeros(0, np.int64)
+    return _highest_border_loop(asset)
+
+
+def _highest_border_loop(asset: GarmentAsset) -> np.ndarray:
+    """The border loop (edges of one face, connected) with the highest mean rest z. (P,) int64."""
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
@@ -140,6 +153,27 @@ def waistband_vertices(asset: GarmentAsset) -> np.ndarray:
     loops = {lab: ids[label[ids] == lab] for lab in np.unique(label[ids])}
     z = np.asarray(asset.rest_vertices)[:, 2]
     return max(loops.values(), key=lambda v: z[v].mean()).astype(np.int64)
+
+
+COLLAR_DEPTH_M = 0.05
+
+
+def collar_vertices(asset: GarmentAsset) -> np.ndarray:
+    """Vertices of the neckline of an outer garment (``category`` 'outer': the open jacket): the
+    vertices of the highest border loop within ``COLLAR_DEPTH_M`` of the garment's top in the
+    rest shape (the back neck and the shoulder-neck points; an open front's loop runs on down the
+    front edges and the hem, which stay free). Other categories: none. returns (P,) int64."""
+    if asset.category != "outer":
+        return np.zeros(0, np.int64)
+    loop = _highest_border_loop(asset)
+    z = np.asarray(asset.rest_vertices)[:, 2]
+    return loop[z[loop] >= z.max() - COLLAR_DEPTH_M]
+
+
+def kinematic_vertices(asset: GarmentAsset) -> np.ndarray:
+    """The vertices the reference moves with the skinned fit instead of simulating (module
+    docstring): a bottom's waistband, an outer garment's neckline. returns (P,) int64."""
+    return np.union1d(waistband_vertices(asset), collar_vertices(asset)).astype(np.int64)
 
 
 @dataclass
@@ -272,7 +306,7 @@ def simulate(asset: GarmentAsset, body: BodyModel, phenotypes: np.ndarray, rotat
     # frame 0 of the sequence: the rest pose shifted to t_0 (the lead-in's start) or, without a
     # lead-in or settle, the clip's first pose, the fit skinned into it
     initial = linear_blend_skinning(rest_fit, asset.skin_weights, transforms[:, :1])[0, 0]
-    pinned = waistband_vertices(asset)
+    pinned = kinematic_vertices(asset)
     # the pinned vertices follow the skinned fit: (L + S + T, P, 3)
     pin_frames = linear_blend_skinning(rest_fit[:, pinned], asset.skin_weights[pinned], transforms)[0] if len(pinned) else None
     sim = ClothOnBody(asset, initial, body_frames[0], body.faces, settings, pinned)
@@ -328,7 +362,7 @@ def simulate_case(garment: str, case, settings: ReferenceSettings = ReferenceSet
     meta = {
         "garment": garment, "case": case.name, "clip": case.clip, "body": case.body, "start": case.start, "frames": case.frames,
         "fps": motion.fps, "settings": asdict(settings), "material": asset.material,
-        "seconds_per_frame": result.seconds_per_frame,
+        "seconds_per_frame": result.seconds_per_frame, "kinematic_vertices": int(len(kinematic_vertices(asset))),
         "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, warp device {settings.device or 'default'}",
         "newton": _version("newton"), "warp": _version("warp-lang"),
     }
