@@ -143,3 +143,18 @@ def test_kinematic_vertices_are_the_waistband_and_the_open_jackets_neckline():
     np.testing.assert_array_equal(kinematic_vertices(trousers), np.sort(waistband_vertices(trousers)))
     for g in ("tshirt", "longsleeve", "dress"):
         assert len(kinematic_vertices(catalog.get(g))) == 0
+
+
+def test_slid_counts_the_carried_half_only_when_asked():
+    from training.judge import carried_vertices, slid_pct
+
+    rest = np.array([[0, 0, 0.0], [0, 0, 0.2], [0, 0, 0.8], [0, 0, 1.0]], np.float32)
+    np.testing.assert_array_equal(carried_vertices(rest), [False, False, True, True])
+    # a body triangle in the plane x = 0; the retarget 1 cm off it, the reference's hem 10 cm off
+    body = np.array([[[0, -5, -5], [0, 5, -5], [0, 0, 5]]], np.float32)
+    faces = np.array([[0, 1, 2]])
+    retarget = np.array([[[0.01, 0, 0.0], [0.01, 0, 0.2], [0.01, 0, 0.8], [0.01, 0, 1.0]]], np.float32)
+    reference = retarget.copy()
+    reference[0, 0, 0] = 0.11
+    assert slid_pct(reference, retarget, body, faces) == 25.0
+    assert slid_pct(reference, retarget, body, faces, carried_vertices(rest)) == 0.0
