@@ -3,6 +3,7 @@ compose file validated by the compose client, and the containers' commands (API,
 health check) run here as they would run in the image."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -140,7 +141,8 @@ def test_nginx_retries_on_another_replica_and_resends_only_the_pure_post():
     main = _proxying((DOCKER / "nginx.conf").read_text())
     loop = _proxying((DOCKER / "nginx.loopback.conf").read_text())
     assert main == loop
-    retry = {where: next(d for d in directives if d.startswith("proxy_next_upstream ")) for where, directives in main.items() if where != "http"}
+    retry = {where: next(d for d in directives if d.startswith("proxy_next_upstream ")) for where, directives in main.items()
+             if where != "http" and not where.startswith("@")}
     assert set(retry) == {"= /v1/drape", "/"}
     for where, directive in retry.items():
         assert {"error", "timeout", "http_502", "http_503"} <= set(directive.rstrip(";").split()[1:])
@@ -151,6 +153,21 @@ def test_nginx_retries_on_another_replica_and_resends_only_the_pure_post():
     for conf in ("nginx.conf", "nginx.loopback.conf"):
         servers = [line for line in (DOCKER / conf).read_text().splitlines() if line.strip().startswith("server ") and ":" in line]
         assert servers and all("max_fails=0" in line for line in servers)
+
+
+def test_nginx_answers_503_problem_json_with_retry_after_when_no_replica_could():
+    """nginx's own 502 (every replica tried refused, dropped or was busy) reaches a client as the
+    503 problem+json with Retry-After that a busy replica answers, in both configurations: a
+    client that retries on 503 then loses no request when a replica dies under load."""
+    for conf in ("nginx.conf", "nginx.loopback.conf"):
+        text = (DOCKER / conf).read_text()
+        assert re.search(r"^\s*error_page 502 = @no_replica;", text, re.M), conf
+        named = text[text.index("location @no_replica {"):]
+        named = named[:named.index("}\n")]
+        assert "default_type application/problem+json;" in named
+        assert re.search(r"add_header Retry-After \d+ always;", named)
+        body = json.loads(re.search(r"return 503 '(.*)';", named).group(1))
+        assert body["status"] == 503 and body["title"] and body["detail"]
 
 
 def test_the_loopback_stack_is_the_deployed_stack_on_loopback_ports():
