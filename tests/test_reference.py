@@ -158,3 +158,21 @@ def test_slid_counts_the_carried_half_only_when_asked():
     reference[0, 0, 0] = 0.11
     assert slid_pct(reference, retarget, body, faces) == 25.0
     assert slid_pct(reference, retarget, body, faces, carried_vertices(rest)) == 0.0
+
+
+def test_moved_counts_a_garment_sliding_along_the_body_that_slid_cannot_see():
+    """A companion whose shoulders slide 30 cm down along the body (as close to it as before):
+    slid_pct sees nothing, moved_pct sees the carried half moved; a 1 cm spread moves nothing."""
+    from training.judge import carried_vertices, moved_pct, slid_pct
+
+    rest = np.array([[0, 0, 0.0], [0, 0, 0.2], [0, 0, 0.8], [0, 0, 1.0]], np.float32)
+    carried = carried_vertices(rest)
+    body = np.array([[[0, -5, -5], [0, 5, -5], [0, 0, 5]]], np.float32)
+    faces = np.array([[0, 1, 2]])
+    reference = np.array([[[0.01, 0, 0.0], [0.01, 0, 0.2], [0.01, 0, 0.8], [0.01, 0, 1.0]]], np.float32)
+    fallen = reference.copy()
+    fallen[0, 2:, 2] -= 0.30
+    assert slid_pct(fallen, reference, body, faces, carried) == 0.0
+    assert moved_pct(fallen, reference, carried) == 100.0
+    jitter = reference + np.float32(0.01)
+    assert moved_pct(jitter, reference, carried) == 0.0
