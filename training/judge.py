@@ -4,7 +4,7 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
 
 - reference  : ``training.reference`` (newton VBD, friction 0.3, 20 substeps); its own
                uncertainty where those simulations exist: the mean vertex distance to the same
-               simulation at friction 0 and at 40 substeps
+               simulation at friction 0, at 40 substeps and at 20 iterations
 - methods    : ``inference.pipeline.drape`` with explicit options (the motion already has its
                arms lifted, as the service imports it):
                  learned  : retarget + fit regressor R_G + wrinkle GRU R_L (thesis eq. 4.2)
@@ -65,7 +65,8 @@ METHODS: dict[str, DrapeOptions] = {
     "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
 }
 REFERENCE = ReferenceSettings()
-UNCERTAINTY = {"friction 0": replace(REFERENCE, friction=0.0), "40 substeps": replace(REFERENCE, substeps=40)}
+UNCERTAINTY = {"friction 0": replace(REFERENCE, friction=0.0), "40 substeps": replace(REFERENCE, substeps=40),
+               "20 iterations": replace(REFERENCE, iterations=20)}
 
 # A reference "stays dressed" when at most MAX_SLID_PCT of the vertices of its carried half (rest
 # height above the garment's mid-height: shoulders and sleeves of a top, the hips of a bottom, what
