@@ -65,6 +65,9 @@ METHODS: dict[str, DrapeOptions] = {
     "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
 }
 REFERENCE = ReferenceSettings()
+# A companion simulation "slid" where its carried half is more than MOVED_M from the reference's
+# same vertices on over MAX_SLID_PCT of them: a report flag on the spread, never used to choose.
+MOVED_M = 0.10
 UNCERTAINTY = {"friction 0": replace(REFERENCE, friction=0.0), "40 substeps": replace(REFERENCE, substeps=40),
                "20 iterations": replace(REFERENCE, iterations=20)}
 
@@ -138,9 +141,9 @@ def slid_pct(reference: np.ndarray, retarget: np.ndarray, body_frames: np.ndarra
     return 100.0 * float(slid[:, mask].mean() if mask is not None else slid.mean())
 
 
-def moved_pct(companion: np.ndarray, reference: np.ndarray, mask: np.ndarray, moved_m: float = 0.10) -> float:
-    """% of the (frame, vertex) pairs of ``mask`` where a companion simulation (friction 0, 40
-    substeps) is more than ``moved_m`` (m) from the reference's same vertex: a spread made of the
+def moved_pct(companion: np.ndarray, reference: np.ndarray, mask: np.ndarray, moved_m: float = MOVED_M) -> float:
+    """% of the (frame, vertex) pairs of ``mask`` where a companion simulation (``UNCERTAINTY``)
+    is more than ``moved_m`` (m) from the reference's same vertex: a spread made of the
     garment sliding along the body (a dress off its shoulders at friction 0), which the body
     distance of ``slid_pct`` does not see."""
     d = np.linalg.norm(np.asarray(companion, np.float64) - np.asarray(reference, np.float64), axis=-1)
@@ -321,7 +324,7 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         "(the failures that count for the default). Slid: % of the reference's vertices more than "
         f"{100 * SLID_M:g} cm farther from the body than the retarget's, over the carried half (above the garment's "
         f"mid-height) and over all; a reference above {MAX_SLID_PCT:g} % on its carried half is NOT DRESSED and judges nothing. "
-        f"A spread marked SLID: more than {MAX_SLID_PCT:g} % of the companion's carried half is over 10 cm from the reference (`moved_pct`), "
+        f"A spread marked SLID: more than {MAX_SLID_PCT:g} % of the companion's carried half is over {100 * MOVED_M:g} cm from the reference (`moved_pct`), "
         "the garment sliding along the body (a wide neckline off the shoulders without friction), not the simulation's numerical spread.",
         "",
         "One size: every garment has one rest geometry (made on the neutral body), and the reference wears it as it is "
@@ -348,7 +351,7 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
             rr = ref["realism"]
             unc = ref["uncertainty_cm"]
             moved = ref.get("moved_pct", {})
-            unc_txt = "; ".join(f"{k}: {v:.2f} cm" + (f" (SLID: {moved[k]:.0f} % of the carried half moved > 10 cm)" if moved.get(k, 0.0) > MAX_SLID_PCT else "")
+            unc_txt = "; ".join(f"{k}: {v:.2f} cm" + (f" (SLID: {moved[k]:.0f} % of the carried half moved > {100 * MOVED_M:g} cm)" if moved.get(k, 0.0) > MAX_SLID_PCT else "")
                                 for k, v in unc.items()) or "not simulated"
             e = ref["energies"]
             slid = f"; slid > {100 * SLID_M:g} cm: {ref['slid_pct']:.1f} % of the carried half, {ref['slid_all_pct']:.1f} % of all" if "slid_all_pct" in ref else ""
