@@ -1,0 +1,150 @@
+"""The diffused body model and the canonical garment model (thesis ch. 6.3.1-6.3.2), in numpy.
+
+Eq. 6.4-6.5 give, for any point p near the canonical body (the neutral adult in the rest
+A-pose), skinning weights W~(p) (J,) and shape offsets B~s(p, beta) (3,) by averaging the body's
+surface values over a Gaussian neighbourhood whose width is the distance to the body; plus the
+signed distance SDF(p) to the canonical skin. ``training.assets.build_diffused_body`` samples
+them on a regular grid; this module reads them by trilinear interpolation:
+
+    f(p) = sum over the 8 nodes c of the cell holding p of  prod_i (1 - |p_i - c_i| / h) f(c)
+
+(clamped to the grid's box: a point beyond it takes the value at the box's face).
+
+The canonical garment model (eq. 6.7-6.8, without pose correctives: anny has none):
+
+    T_G(X, beta) = X + B~s(X, beta),   B~s(X, beta) = sum_k a_k(beta) U~_k(X),  a = (c(beta) - c_n) A
+    M_G(X, beta, theta) = sum_j W~_j(X) T_j(beta, theta) T_G(X, beta)
+
+with c the body's blendshape coefficients, c_n the neutral body's, and T_j the skinning
+transforms of the shaped body from its rest pose (``BodyModel.pose``). X is the garment in the
+canonical space: unposed and deshaped, on the neutral body.
+
+Units: metres. Shapes: batch first; points (..., 3).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from inference.body import ASSETS_DIR
+from inference.errors import InputShapeError
+
+DEFAULT_PATH = ASSETS_DIR / "body" / "diffused.npz"
+
+
+class Grid:
+    """Channels sampled on a regular grid (nodes (nx, ny, nz), spacing h, corner ``origin``),
+    read by trilinear interpolation (module docstring), clamped to the grid's box."""
+
+    def __init__(self, origin: np.ndarray, spacing: float, fields: np.ndarray):
+        if fields.ndim != 4 or min(fields.shape[:3]) < 2:
+            raise InputShapeError("fields", "(nx, ny, nz, C), n >= 2", fields.shape)
+        self.origin = np.asarray(origin, np.float32)
+        self.spacing = float(spacing)
+        self.dims = np.array(fields.shape[:3], np.int64)
+        self.table = np.ascontiguousarray(fields.reshape(-1, fields.shape[-1]))  # (nodes, C), float16 kept
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], np.int64)
+        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)
+        self._corner_offsets = corners @ self.strides  # the 8 corners of a cell as flat node offsets
+        self._corners = corners.astype(bool)
+
+    @property
+    def channels(self) -> int:
+        return int(self.table.shape[1])
+
+    def interpolate(self, points: np.ndarray, channels: slice = slice(None)) -> np.ndarray:
+        """Trilinear interpolation at points (..., 3) -> (..., C') float32."""
+        p = np.asarray(points, np.float32)
+        u = (p.reshape(-1, 3) - self.origin) / np.float32(self.spacing)
+        u = np.clip(u, 0.0, (self.dims - 1).astype(np.float32))
+        i0 = np.minimum(u.astype(np.int64), self.dims - 2)
+        t = u - i0  # (N, 3) in [0, 1]
+        idx = (i0 @ self.strides)[:, None] + self._corner_offsets[None]  # (N, 8)
+        # w[n, c] = prod_i (t_i if corner c has i = 1 else 1 - t_i)
+        w = np.prod(np.where(self._corners[None], t[:, None, :], 1.0 - t[:, None, :]), axis=-1)
+        vals = self.table[:, channels][idx] if channels != slice(None) else self.table[idx]
+        out = np.einsum("nc,ncd->nd", w, vals.astype(np.float32), optimize=True)
+        return out.reshape(p.shape[:-1] + (out.shape[-1],))
+
+
+@dataclass(frozen=True)
+class DiffusedSample:
+    """The diffused fields at points (..., 3): weights (..., J) rows summing to 1, shape basis
+    (..., r, 3) metres per unit coefficient, sdf (...) metres (negative inside the canonical body)."""
+
+    weights: np.ndarray
+    shape_basis: np.ndarray
+    sdf: np.ndarray
+
+
+class DiffusedBody:
+    """W~ and SDF on one grid, the shape basis U~_k on a coarser one; see the module docstring."""
+
+    def __init__(self, skin: Grid, shape: Grid, shape_map: np.ndarray, neutral_coeffs: np.ndarray, metadata: dict | None = None):
+        self.skin_grid, self.shape_grid = skin, shape
+        self.shape_map = np.asarray(shape_map, np.float32)
+        self.neutral_coeffs = np.asarray(neutral_coeffs, np.float64)
+        self.bones = skin.channels - 1
+        self.components = self.shape_map.shape[1]
+        if shape.channels != 3 * self.components:
+            raise InputShapeError("shape_fields", f"(mx, my, mz, {3 * self.components})", tuple(shape.dims) + (shape.channels,))
+        self.metadata = metadata or {}
+
+    @classmethod
+    def load(cls, path: Path | str = DEFAULT_PATH) -> "DiffusedBody":
+        with np.load(path, allow_pickle=False) as f:
+            return cls(Grid(f["origin"], float(f["spacing"]), f["fields"]), Grid(f["origin"], float(f["shape_spacing"]), f["shape_fields"]),
+                       f["shape_map"], f["neutral_coeffs"], json.loads(str(f["metadata"])))
+
+    def weights(self, points: np.ndarray) -> np.ndarray:
+        """W~(p) (eq. 6.4): (..., 3) -> (..., J) float32, non-negative rows summing to 1."""
+        w = np.maximum(self.skin_grid.interpolate(points, slice(0, self.bones)), 0.0)
+        return w / np.maximum(w.sum(-1, keepdims=True), 1e-12)
+
+    def sdf(self, points: np.ndarray) -> np.ndarray:
+        """Signed distance to the canonical skin (metres, negative inside): (..., 3) -> (...)."""
+        return self.skin_grid.interpolate(points, slice(self.bones, self.bones + 1))[..., 0]
+
+    def sample(self, points: np.ndarray) -> DiffusedSample:
+        """W~, U~ and SDF at points (..., 3)."""
+        skin = self.skin_grid.interpolate(points)
+        w = np.maximum(skin[..., :-1], 0.0)
+        w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
+        basis = self.shape_grid.interpolate(points)
+        return DiffusedSample(weights=w, shape_basis=basis.reshape(basis.shape[:-1] + (self.components, 3)), sdf=skin[..., -1])
+
+    def shape_coefficients(self, body_coeffs: np.ndarray) -> np.ndarray:
+        """a(beta) = (c(beta) - c_n) A: (B, 135) blendshape coefficients -> (B, r) float32."""
+        c = np.asarray(body_coeffs, np.float64)
+        return ((c - self.neutral_coeffs) @ self.shape_map.astype(np.float64)).astype(np.float32)
+
+    def shape_offsets(self, points: np.ndarray, body_coeffs: np.ndarray) -> np.ndarray:
+        """B~s(p, beta) (eq. 6.5): points (B, V, 3), body_coeffs (B, 135) -> offsets (B, V, 3) metres."""
+        basis = self.shape_grid.interpolate(points)  # (B, V, 3r)
+        basis = basis.reshape(basis.shape[:-1] + (self.components, 3))
+        return np.einsum("bvkc,bk->bvc", basis, self.shape_coefficients(body_coeffs), optimize=True)
+
+    def deshaped_to_shaped(self, X: np.ndarray, body_coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """T_G(X, beta) = X + B~s(X, beta) (eq. 6.8) and W~(X) (eq. 6.4).
+
+        X : (B, V, 3) canonical garment ; body_coeffs : (B, 135) the bodies' blendshape coefficients
+        returns the shaped rest garment (B, V, 3) float32 metres and its weights (B, V, J) float32
+        """
+        X = np.asarray(X, np.float32)
+        if X.ndim != 3 or X.shape[-1] != 3:
+            raise InputShapeError("X", "(B, V, 3)", X.shape)
+        return X + self.shape_offsets(X, body_coeffs), self.weights(X)
+
+
+def skin_per_point_weights(points: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """LBS with weights that differ per body (eq. 6.7's W with W~(X)): v'_t = sum_j w_vj T_tj v.
+
+    points : (B, V, 3) float32 ; weights : (B, V, J) ; transforms : (B, T, J, 4, 4)
+    returns (B, T, V, 3) float32
+    """
+    from inference.body import linear_blend_skinning
+
+    return np.concatenate([linear_blend_skinning(points[b:b + 1], weights[b], transforms[b:b + 1]) for b in range(len(points))])
