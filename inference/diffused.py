@@ -65,7 +65,9 @@ class Grid:
         idx = (i0 @ self.strides)[:, None] + self._corner_offsets[None]  # (N, 8)
         # w[n, c] = prod_i (t_i if corner c has i = 1 else 1 - t_i)
         w = np.prod(np.where(self._corners[None], t[:, None, :], 1.0 - t[:, None, :]), axis=-1)
-        vals = self.table[:, channels][idx] if channels != slice(None) else self.table[idx]
+        vals = self.table[idx]  # (N, 8, C) rows of the 8 corners
+        if channels != slice(None):
+            vals = vals[..., channels]
         out = np.einsum("nc,ncd->nd", w, vals.astype(np.float32), optimize=True)
         return out.reshape(p.shape[:-1] + (out.shape[-1],))
 
