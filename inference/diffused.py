@@ -139,14 +139,3 @@ class DiffusedBody:
         if X.ndim != 3 or X.shape[-1] != 3:
             raise InputShapeError("X", "(B, V, 3)", X.shape)
         return X + self.shape_offsets(X, body_coeffs), self.weights(X)
-
-
-def skin_per_point_weights(points: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-    """LBS with weights that differ per body (eq. 6.7's W with W~(X)): v'_t = sum_j w_vj T_tj v.
-
-    points : (B, V, 3) float32 ; weights : (B, V, J) ; transforms : (B, T, J, 4, 4)
-    returns (B, T, V, 3) float32
-    """
-    from inference.body import linear_blend_skinning
-
-    return np.concatenate([linear_blend_skinning(points[b:b + 1], weights[b], transforms[b:b + 1]) for b in range(len(points))])
