@@ -1,0 +1,258 @@
+"""Projection of posed garments into the canonical space (thesis ch. 6.3.3, eq. 6.9-6.12), torch.
+
+The canonical garment model (eq. 6.7-6.8, ``inference.diffused``) maps a garment X in the
+canonical space (unposed, deshaped: on the neutral body in its rest pose) to the posed space:
+
+    T_G(X, beta)        = X + B~s(X, beta)                                       (eq. 6.8)
+    M_G(X, beta, theta) = sum_j W~_j(X) T_j(beta, theta) T_G(X, beta)            (eq. 6.7)
+
+Given a posed garment frame x (a physics simulation) with known beta and theta, its canonical
+form is
+
+    X* = argmin_X  E_rec + w_strain E_strain + w_collision E_collision           (eq. 6.9)
+    E_rec       = mean_v |x_v - M_G(X, beta, theta)_v|^2          (m^2)          (eq. 6.10)
+    E_strain    = sum_f a_f |G_f|_F^2 / sum_f a_f,  G = (F^T F - I) / 2           (eq. 6.11)
+                  F the deformation gradient of T_G(X, beta) against the garment's rest triangles,
+                  a_f their rest areas (unitless)
+    E_collision = mean_v max(eps - SDF(X_v), 0)                   (m)            (eq. 6.12)
+
+with SDF the constant canonical body's signed distance (the diffused body's grid). Every term is
+differentiable in X through the trilinear fields (W~, B~s and SDF all depend on X). A sequence
+is solved frame by frame with L-BFGS, each frame started from the previous frame's X (the thesis'
+warm start: faster, and stable in time); the first frame starts from the inverse skinning of the
+target with the fields at the garment template.
+
+Units: metres. Arrays: torch float64 inside, numpy float32 at the interface.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from inference.diffused import DiffusedBody, Grid
+from training.physics import ClothGeometry, deformation_gradients
+
+
+class TorchGrid:
+    """``inference.diffused.Grid`` in torch: the same trilinear interpolation, differentiable in
+    the points (the cell index is piecewise constant; the weights carry the gradient)."""
+
+    def __init__(self, grid: Grid, table: np.ndarray | None = None, dtype: torch.dtype = torch.float64):
+        self.origin = torch.as_tensor(grid.origin, dtype=dtype)
+        self.spacing = grid.spacing
+        self.dims = torch.as_tensor(grid.dims)
+        self.strides = torch.as_tensor(grid.strides)
+        self.table = torch.as_tensor(np.asarray(grid.table if table is None else table, np.float64), dtype=dtype)
+        self.corner_offsets = torch.as_tensor(grid._corner_offsets)
+        self.corners = torch.as_tensor(grid._corners)
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        """(N, 3) -> (N, C)."""
+        u = (points - self.origin) / self.spacing
+        hi = (self.dims - 1).to(u.dtype)
+        u = torch.minimum(torch.clamp(u, min=0.0), hi)
+        i0 = torch.minimum(u.detach().floor().long(), self.dims - 2)
+        t = u - i0.to(u.dtype)
+        idx = (i0 @ self.strides)[:, None] + self.corner_offsets[None]  # (N, 8)
+        w = torch.where(self.corners[None], t[:, None, :], 1.0 - t[:, None, :]).prod(-1)  # (N, 8)
+        return torch.einsum("nc,ncd->nd", w, self.table[idx])
+
+
+class CanonicalBody:
+    """The diffused body's fields for one body shape beta, in torch (eq. 6.4-6.8).
+
+    The shape basis is contracted with the body's coefficients once, B~s(p, beta) =
+    sum_k a_k(beta) U~_k(p), so a lookup reads 3 channels instead of 3 r.
+    """
+
+    def __init__(self, diffused: DiffusedBody, body_coeffs: np.ndarray, dtype: torch.dtype = torch.float64):
+        a = diffused.shape_coefficients(np.asarray(body_coeffs)[None])[0].astype(np.float64)  # (r,)
+        table = diffused.shape_grid.table.astype(np.float64).reshape(-1, diffused.components, 3)
+        self.skin = TorchGrid(diffused.skin_grid, dtype=dtype)
+        self.offsets = TorchGrid(diffused.shape_grid, np.einsum("nkc,k->nc", table, a), dtype=dtype)
+        self.bones = diffused.bones
+
+    def fields(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """W~(X) (V, J) rows summing to 1, SDF(X) (V,) m, B~s(X, beta) (V, 3) m."""
+        s = self.skin(X)
+        w = torch.clamp(s[:, : self.bones], min=0.0)
+        w = w / torch.clamp(w.sum(-1, keepdim=True), min=1e-12)
+        return w, s[:, self.bones], self.offsets(X)
+
+    def pose(self, X: torch.Tensor, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """M_G (eq. 6.7) of X (V, 3) under skinning transforms (J, 4, 4); returns the posed
+        garment (V, 3), T_G(X, beta) (V, 3) and SDF(X) (V,)."""
+        w, sdf, offsets = self.fields(X)
+        shaped = X + offsets
+        A = torch.einsum("vj,jab->vab", w, transforms[:, :3, :])  # (V, 3, 4) blended transforms
+        posed = torch.einsum("vab,vb->va", A[:, :, :3], shaped) + A[:, :, 3]
+        return posed, shaped, sdf
+
+    def unpose(self, x: torch.Tensor, X_fields: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+        """Inverse of eq. 6.7 with the fields frozen at X_fields (V, 3): the start of a solve."""
+        w, _, offsets = self.fields(X_fields)
+        A = torch.einsum("vj,jab->vab", w, transforms[:, :3, :])
+        shaped = torch.linalg.solve(A[:, :, :3], (x - A[:, :, 3])[..., None])[..., 0]
+        return shaped - offsets
+
+
+@dataclass(frozen=True)
+class ProjectionSettings:
+    """Weights of eq. 6.9 and the solver's budget."""
+
+    # E_strain is unitless, E_rec m^2: |G| = 0.1 on every triangle costs as (1 mm)^2 of error on every
+    # vertex. Chosen on the validation walk (02_02, T-shirt, 3 frames): 1e-3 left 3.3 mm RMS of
+    # error, 1e-5 gave 1.1 mm but |G| 0.31 RMS in the canonical garment; 1e-4: 1.8 mm, |G| 0.19
+    w_strain: float = 1e-4
+    w_collision: float = 1e-2  # per metre of depth below eps: a vertex 1 mm inside costs as (3 mm)^2 of error
+    eps_m: float = 2e-3  # the canonical garment keeps this clearance from the canonical body
+    iterations: int = 60  # L-BFGS iterations per frame
+    first_frame_iterations: int = 200
+
+
+@dataclass
+class FrameReport:
+    """Convergence of one frame: reconstruction error of M_G(X*) against the target (mm), strain
+    of T_G(X*) (RMS |G|_F over triangles), X* vertices inside the canonical body and within eps
+    of it (shares), and the solver's iterations and seconds."""
+
+    rec_rms_mm: float
+    rec_max_mm: float
+    strain_rms: float
+    inside: float
+    within_eps: float
+    energy: float
+    iterations: int
+    seconds: float
+
+
+def _strain_rms(cloth: ClothGeometry, shaped: torch.Tensor) -> torch.Tensor:
+    """Area-weighted mean of |G|_F^2 over triangles (eq. 6.11), unitless."""
+    F = deformation_gradients(shaped[None], cloth.faces, cloth.dm_inv)[0]
+    C = torch.einsum("fci,fcj->fij", F, F)
+    G = 0.5 * (C - torch.eye(2, dtype=C.dtype))
+    g2 = (G * G).sum((-1, -2))
+    return (g2 * cloth.rest_area_m2).sum() / cloth.rest_area_m2.sum()
+
+
+class Projector:
+    """Solves eq. 6.9 for the frames of one garment on one body (module docstring)."""
+
+    def __init__(self, body: CanonicalBody, cloth: ClothGeometry, settings: ProjectionSettings = ProjectionSettings()):
+        self.body, self.cloth, self.settings = body, cloth, settings
+
+    def terms(self, X: torch.Tensor, target: torch.Tensor, transforms: torch.Tensor) -> dict[str, torch.Tensor]:
+        posed, shaped, sdf = self.body.pose(X, transforms)
+        return {
+            "rec": ((posed - target) ** 2).sum(-1).mean(),
+            "strain": _strain_rms(self.cloth, shaped),
+            "collision": torch.clamp(self.settings.eps_m - sdf, min=0.0).mean(),
+            "posed": posed, "sdf": sdf,
+        }
+
+    def energy(self, t: dict[str, torch.Tensor]) -> torch.Tensor:
+        s = self.settings
+        return t["rec"] + s.w_strain * t["strain"] + s.w_collision * t["collision"]
+
+    def frame(self, target: torch.Tensor, transforms: torch.Tensor, X0: torch.Tensor, iterations: int) -> tuple[torch.Tensor, FrameReport]:
+        """One frame: X* from X0 (V, 3); target (V, 3) posed; transforms (J, 4, 4)."""
+        t0 = time.perf_counter()
+        X = X0.detach().clone().requires_grad_(True)
+        opt = torch.optim.LBFGS([X], lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-12, tolerance_change=1e-15)
+
+        def closure():
+            opt.zero_grad()
+            e = self.energy(self.terms(X, target, transforms))
+            e.backward()
+            return e
+
+        opt.step(closure)
+        with torch.no_grad():
+            t = self.terms(X, target, transforms)
+            err = torch.linalg.norm(t["posed"] - target, dim=-1)
+            report = FrameReport(
+                rec_rms_mm=float(torch.sqrt((err ** 2).mean())) * 1e3, rec_max_mm=float(err.max()) * 1e3,
+                strain_rms=float(torch.sqrt(t["strain"])), inside=float((t["sdf"] < 0).double().mean()),
+                within_eps=float((t["sdf"] < self.settings.eps_m).double().mean()), energy=float(self.energy(t)),
+                iterations=int(opt.state[opt._params[0]]["n_iter"]), seconds=time.perf_counter() - t0)
+        return X.detach(), report
+
+    def sequence(self, targets: np.ndarray, transforms: np.ndarray, template: np.ndarray) -> tuple[np.ndarray, list[FrameReport]]:
+        """Canonical frames X* (T, V, 3) float32 of posed targets (T, V, 3) under transforms
+        (T, J, 4, 4), warm-started frame to frame from the unposed first frame."""
+        dtype = self.cloth.dm_inv.dtype
+        tg = torch.as_tensor(np.asarray(targets), dtype=dtype)
+        tf = torch.as_tensor(np.asarray(transforms), dtype=dtype)
+        X = self.body.unpose(tg[0], torch.as_tensor(np.asarray(template), dtype=dtype), tf[0])
+        out, reports = [], []
+        for f in range(len(tg)):
+            X, r = self.frame(tg[f], tf[f], X, self.settings.first_frame_iterations if f == 0 else self.settings.iterations)
+            out.append(X.numpy().astype(np.float32))
+            reports.append(r)
+        return np.stack(out), reports
+
+
+def summarise(reports: list[FrameReport]) -> dict:
+    """Means over frames, and the worst frame's values, of a sequence's reports."""
+    rows = [asdict(r) for r in reports]
+    keys = rows[0].keys()
+    return {"frames": len(rows), "mean": {k: float(np.mean([r[k] for r in rows])) for k in keys},
+            "max": {k: float(np.max([r[k] for r in rows])) for k in keys}}
+
+
+def reference_transforms(body, metadata: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Skinning transforms (T, J, 4, 4) of a reference simulation's frames and its body's
+    blendshape coefficients (135,), from its metadata (``training.reference.simulate_case``)."""
+    from training.protocol import BODIES, Case, case_motion
+
+    case = Case(metadata["clip"], metadata["body"], int(metadata["start"]), int(metadata["frames"]))
+    shape, motion, start = case_motion(body, case)
+    window = slice(start, start + case.frames)
+    _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, window], motion.translation[None, window])
+    return transforms[0], body.coefficients(np.asarray(BODIES[case.body], np.float32)[None])[0]
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+    import json
+    import logging
+    from pathlib import Path
+
+    from inference.body import BodyModel
+    from inference.garment import GarmentCatalog
+
+    p = argparse.ArgumentParser(description="Project reference simulations into the canonical space (thesis eq. 6.9).")
+    p.add_argument("references", nargs="+", type=Path, help="reference .npz files (training.reference)")
+    p.add_argument("--diffused", type=Path, default=Path("build/diffused/diffused.npz"),
+                   help="diffused body (python -m training.assets.build_diffused_body --out ...)")
+    p.add_argument("--out-dir", type=Path, default=Path("build/canonical"))
+    p.add_argument("--frames", type=int, default=None, help="first frames only")
+    p.add_argument("--w-strain", type=float, default=ProjectionSettings.w_strain)
+    p.add_argument("--w-collision", type=float, default=ProjectionSettings.w_collision)
+    p.add_argument("--iterations", type=int, default=ProjectionSettings.iterations)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    log = logging.getLogger("training.projection")
+    body, catalog, diffused = BodyModel.load(), GarmentCatalog.load(), DiffusedBody.load(args.diffused)
+    settings = ProjectionSettings(w_strain=args.w_strain, w_collision=args.w_collision, iterations=args.iterations)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    for path in args.references:
+        with np.load(path, allow_pickle=False) as f:
+            meta = json.loads(str(f["metadata"]))
+            targets = f["vertices"][: args.frames]
+        asset = catalog.get(meta["garment"])
+        transforms, coeffs = reference_transforms(body, meta)
+        projector = Projector(CanonicalBody(diffused, coeffs), ClothGeometry.from_asset(asset), settings)
+        X, reports = projector.sequence(targets, transforms[: len(targets)], asset.vertices)
+        report = {"reference": path.name, "settings": asdict(settings), **summarise(reports)}
+        out = args.out_dir / path.name
+        np.savez_compressed(out, canonical=X, report=np.str_(json.dumps(report)), frame_reports=np.str_(json.dumps([asdict(r) for r in reports])))
+        log.info("%s: %s", out, json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
