@@ -37,28 +37,24 @@ from training.physics import ClothGeometry, deformation_gradients
 
 
 class TorchGrid:
-    """``inference.diffused.Grid`` in torch: the same trilinear interpolation, differentiable in
-    the points (the cell index is piecewise constant; the weights carry the gradient)."""
+    """``inference.diffused.Grid`` in torch: the same trilinear interpolation, clamped to the box,
+    differentiable in the points, by ``torch.nn.functional.grid_sample`` (align_corners: node i
+    of an axis of n nodes sits at -1 + 2 i / (n - 1); border padding is the clamp)."""
 
     def __init__(self, grid: Grid, table: np.ndarray | None = None, dtype: torch.dtype = torch.float64):
+        table = np.asarray(grid.table if table is None else table, np.float64)
         self.origin = torch.as_tensor(grid.origin, dtype=dtype)
         self.spacing = grid.spacing
-        self.dims = torch.as_tensor(grid.dims)
-        self.strides = torch.as_tensor(grid.strides)
-        self.table = torch.as_tensor(np.asarray(grid.table if table is None else table, np.float64), dtype=dtype)
-        self.corner_offsets = torch.as_tensor(grid._corner_offsets)
-        self.corners = torch.as_tensor(grid._corners)
+        self.extent = torch.as_tensor((grid.dims - 1).astype(np.float64) * grid.spacing, dtype=dtype)
+        # (1, C, nx, ny, nz): grid_sample's (N, C, D, H, W), so a point's (x, y, z) is read as (W, H, D) = (z, y, x)
+        self.volume = torch.as_tensor(table.T.reshape(1, table.shape[1], *grid.dims), dtype=dtype).contiguous()
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N, C)."""
-        u = (points - self.origin) / self.spacing
-        hi = (self.dims - 1).to(u.dtype)
-        u = torch.minimum(torch.clamp(u, min=0.0), hi)
-        i0 = torch.minimum(u.detach().floor().long(), self.dims - 2)
-        t = u - i0.to(u.dtype)
-        idx = (i0 @ self.strides)[:, None] + self.corner_offsets[None]  # (N, 8)
-        w = torch.where(self.corners[None], t[:, None, :], 1.0 - t[:, None, :]).prod(-1)  # (N, 8)
-        return torch.einsum("nc,ncd->nd", w, self.table[idx])
+        g = 2.0 * (points - self.origin) / self.extent - 1.0
+        out = torch.nn.functional.grid_sample(self.volume, g.flip(-1).reshape(1, 1, 1, -1, 3), mode="bilinear",
+                                              padding_mode="border", align_corners=True)
+        return out.reshape(self.volume.shape[1], -1).T
 
 
 class CanonicalBody:
