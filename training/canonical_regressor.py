@@ -1,0 +1,99 @@
+"""Recurrent regressor into the canonical VAE's latent space (thesis ch. 6.4, eq. 6.17-6.18), torch.
+
+    z_t = R(beta, gamma_1..t)                                              (eq. 6.1 in the subspace)
+    L_R = L_pos + rho_1 L_vel + rho_2 L_acc                                (eq. 6.18)
+
+L_pos = mean |z_t - z*_t|_1, L_vel and L_acc the same on the first and second differences in
+time (per frame), z*_t = mu(E(X*_t)) the VAE encoding of the canonical projection of a physics
+simulation (``training.projection``). gamma is the service's motion descriptor
+(``inference.motion.descriptor``, eq. 6.17 adapted), beta the six phenotypes. Architecture as
+the ch. 4 wrinkle model's (``training.models.WrinkleGRU``): GRU layers over [normalised
+phenotypes, normalised gamma], a linear head to the latent; a whole sequence in one call with an
+initial state in and the final state out.
+
+The posed garment of frame t is then eq. 6.7: M_G(D(z_t), beta, theta_t) with the diffused
+body's W~ and B~s at the decoded canonical points (``training.projection.CanonicalBody``).
+
+Units: metres, seconds. Batch first.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from training.models import GAMMA_CLIP_STD, PHENOTYPE_LABELS, PhenotypeNormaliser
+
+
+@dataclass(frozen=True)
+class RegressorConfig:
+    hidden: int = 256
+    layers: int = 2  # thesis: 2 GRU layers (of 500)
+    rho_vel: float = 0.5  # thesis rho_1
+    rho_acc: float = 0.1  # thesis rho_2
+    lr: float = 1e-3
+    steps: int = 1500
+    window: int = 40  # frames per training window (from the first frame)
+    batch: int = 8
+    seed: int = 0
+
+
+class CanonicalRegressor(nn.Module):
+    """R: phenotypes (B, 6), gamma (B, T, F), h0 (L, B, H) -> z (B, T, latent), hT."""
+
+    def __init__(self, latent: int, gamma_mean: np.ndarray, gamma_std: np.ndarray, config: RegressorConfig = RegressorConfig()):
+        super().__init__()
+        self.layers, self.hidden = config.layers, config.hidden
+        self.normalise = PhenotypeNormaliser()
+        self.register_buffer("gamma_mean", torch.as_tensor(np.asarray(gamma_mean, np.float32)))
+        self.register_buffer("gamma_std", torch.as_tensor(np.asarray(gamma_std, np.float32)))
+        self.gru = nn.GRU(len(PHENOTYPE_LABELS) + len(gamma_mean), config.hidden, num_layers=config.layers, batch_first=True)
+        self.head = nn.Linear(config.hidden, latent)
+
+    def initial_state(self, batch: int) -> torch.Tensor:
+        return torch.zeros(self.layers, batch, self.hidden)
+
+    def forward(self, phenotypes: torch.Tensor, gamma: torch.Tensor, h0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        g = torch.clamp((gamma - self.gamma_mean) / self.gamma_std, -GAMMA_CLIP_STD, GAMMA_CLIP_STD)
+        p = self.normalise(phenotypes)[:, None, :].expand(-1, gamma.shape[1], -1)
+        y, h_t = self.gru(torch.cat([p, g], dim=-1), h0)
+        return self.head(y), h_t
+
+
+def regressor_loss(z: torch.Tensor, target: torch.Tensor, config: RegressorConfig) -> torch.Tensor:
+    """eq. 6.18 on (B, T, latent) sequences."""
+    pos = (z - target).abs().mean()
+    vel = (z.diff(dim=1) - target.diff(dim=1)).abs().mean()
+    acc = (z.diff(n=2, dim=1) - target.diff(n=2, dim=1)).abs().mean()
+    return pos + config.rho_vel * vel + config.rho_acc * acc
+
+
+def train_regressor(sequences: list[dict], latent: int, config: RegressorConfig = RegressorConfig()) -> tuple[CanonicalRegressor, dict]:
+    """sequences: dicts with ``phenotypes`` (6,), ``gamma`` (T, F), ``z`` (T, latent), all
+    starting at the simulation's first frame (the GRU starts from h0 = 0 there, as at runtime).
+    Windows of ``config.window`` frames always start at a sequence's first frame."""
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    gammas = np.concatenate([s["gamma"] for s in sequences])
+    model = CanonicalRegressor(latent, gammas.mean(0), np.maximum(gammas.std(0), 1e-3), config)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    t0 = time.perf_counter()
+    history = []
+    for step in range(config.steps):
+        idx = rng.integers(0, len(sequences), config.batch)
+        T = min(config.window, min(len(sequences[i]["z"]) for i in idx))
+        ph = torch.as_tensor(np.stack([sequences[i]["phenotypes"] for i in idx]), dtype=torch.float32)
+        g = torch.as_tensor(np.stack([sequences[i]["gamma"][:T] for i in idx]), dtype=torch.float32)
+        zt = torch.as_tensor(np.stack([sequences[i]["z"][:T] for i in idx]), dtype=torch.float32)
+        z, _ = model(ph, g, model.initial_state(len(idx)))
+        loss = regressor_loss(z, zt, config)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if step % 250 == 0 or step == config.steps - 1:
+            history.append({"step": step, "loss": float(loss.detach())})
+    return model.eval(), {"config": asdict(config), "train_wall_s": round(time.perf_counter() - t0, 1), "history": history,
+                          "sequences": len(sequences)}

@@ -1,0 +1,174 @@
+"""The canonical-space garment model of thesis ch. 6, end to end for one garment, and its score.
+
+    python -m training.train_canonical --garment tshirt [--clips 02_01 02_03 02_04 01_14] [--bodies neutral heavy]
+
+Steps (each cached under ``build/``):
+1. newton simulations of the garment on the training clips (``training.reference``; frames
+   ``--start`` to ``--start + --frames`` of each clip, every body of ``--bodies``);
+2. their projection into the canonical space (``training.projection``, eq. 6.9);
+3. the VAE over the canonical frames (``training.canonical_vae``, eq. 6.13-6.16);
+4. the regressor into its latent (``training.canonical_regressor``, eq. 6.17-6.18);
+5. the score on the validation cases (``training.protocol.SPLITS['validation']``, never a test
+   clip): the posed garment M_G(D(R(beta, gamma)), beta, theta) (eq. 6.7) against the newton
+   reference of the same case: mean vertex error (cm), share of vertices inside the posed body
+   (no collision stage), and the same for the template through eq. 6.7 (z of the template: the
+   diffused skinning alone) as the in-model baseline.
+
+Writes ``build/canonical_model/<garment>/``: ``vae.pt``, ``decoder.onnx``, ``regressor.pt``,
+``report.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from inference.body import BodyModel
+from inference.diffused import DiffusedBody
+from inference.garment import GarmentCatalog
+from inference.metrics import inside_mask
+from inference.motion.descriptor import motion_descriptor
+from training.canonical_regressor import RegressorConfig, train_regressor
+from training.canonical_vae import VAEConfig, export_decoder, load_canonical, metadata_record, train_vae
+from training.datasets import REPO_ROOT, TRAIN_CLIPS
+from training.physics import ClothGeometry
+from training.projection import CanonicalBody, Projector, ProjectionSettings, reference_transforms, summarise
+from training.protocol import BODIES, SPLITS, Case, case_motion
+from training.reference import REFERENCE_DIR, ReferenceSettings, reference_path, simulate_case
+
+log = logging.getLogger(__name__)
+
+BUILD = REPO_ROOT / "build"
+TRAIN_REFERENCE_DIR = BUILD / "reference" / "train"
+CANONICAL_DIR = BUILD / "canonical"
+OUT_DIR = BUILD / "canonical_model"
+
+
+def project(reference: Path, out: Path, body: BodyModel, catalog: GarmentCatalog, diffused: DiffusedBody) -> Path:
+    """Canonical frames of one reference simulation (cached)."""
+    if out.exists():
+        return out
+    with np.load(reference, allow_pickle=False) as f:
+        meta = json.loads(str(f["metadata"]))
+        targets = f["vertices"]
+    asset = catalog.get(meta["garment"])
+    transforms, coeffs = reference_transforms(body, meta)
+    projector = Projector(CanonicalBody(diffused, coeffs), ClothGeometry.from_asset(asset))
+    X, reports = projector.sequence(targets, transforms, asset.vertices)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, canonical=X, report=np.str_(json.dumps({"reference": reference.name, **summarise(reports)})))
+    return out
+
+
+def case_inputs(body: BodyModel, case: Case) -> dict:
+    """Phenotypes, gamma (T, F) and skinning transforms (T, J, 4, 4) of a case's window."""
+    shape, motion, start = case_motion(body, case)
+    gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)[0]
+    window = slice(start, start + case.frames)
+    _, T = body.pose(shape.rest_bone_poses, motion.rotations[None, window], motion.translation[None, window])
+    ph = np.asarray(BODIES[case.body], np.float32)
+    return {"phenotypes": ph, "gamma": gamma[window], "transforms": T[0], "coeffs": body.coefficients(ph[None])[0], "shape": shape}
+
+
+@torch.no_grad()
+def posed_frames(canonical: CanonicalBody, X: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """eq. 6.7 per frame: X (T, V, 3), transforms (T, J, 4, 4) -> (T, V, 3) float32."""
+    out = [canonical.pose(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(t, dtype=torch.float64))[0].numpy() for x, t in zip(X, transforms)]
+    return np.stack(out).astype(np.float32)
+
+
+def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, faces: np.ndarray) -> dict:
+    """Mean vertex error (cm) against the reference, and the share of vertices inside the posed body."""
+    err = np.linalg.norm(posed - reference, axis=-1)
+    inside = inside_mask(posed, body_frames, faces)
+    return {"error_mean_cm": float(err.mean() * 100), "error_p99_cm": float(np.percentile(err, 99) * 100),
+            "inside": float(inside.mean()), "inside_worst_frame": float(inside.mean(1).max())}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--garment", required=True)
+    p.add_argument("--clips", nargs="+", default=["02_01", "02_03", "02_04", "01_14"])
+    p.add_argument("--bodies", nargs="+", default=["neutral", "heavy"])
+    p.add_argument("--start", type=int, default=30)
+    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--diffused", type=Path, default=BUILD / "diffused" / "diffused.npz")
+    p.add_argument("--vae-steps", type=int, nargs=2, default=None)
+    p.add_argument("--regressor-steps", type=int, default=RegressorConfig.steps)
+    p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    for clip in args.clips:
+        if clip not in TRAIN_CLIPS:
+            raise SystemExit(f"{clip} is not a training clip ({', '.join(TRAIN_CLIPS)})")
+    t0 = time.perf_counter()
+    body, catalog, diffused = BodyModel.load(), GarmentCatalog.load(), DiffusedBody.load(args.diffused)
+    asset = catalog.get(args.garment)
+    settings = ReferenceSettings(device="cpu")
+
+    # 1-2: simulations and their projections
+    train_cases = [Case(c, b, args.start, args.frames) for c in args.clips for b in args.bodies]
+    sequences, canonical_paths = [], []
+    for case in train_cases:
+        ref = simulate_case(args.garment, case, settings, TRAIN_REFERENCE_DIR, body, catalog)
+        canonical_paths.append(project(ref, CANONICAL_DIR / "train" / ref.name, body, catalog, diffused))
+        sequences.append(case_inputs(body, case))
+    validation = []
+    for case in SPLITS["validation"]:
+        ref = reference_path(args.garment, case.key, ReferenceSettings(), REFERENCE_DIR)
+        if not ref.exists():
+            ref = simulate_case(args.garment, case, ReferenceSettings(), REFERENCE_DIR, body, catalog)
+        validation.append((case, ref, project(ref, CANONICAL_DIR / "validation" / ref.name, body, catalog, diffused)))
+    t_data = time.perf_counter() - t0
+
+    # 3: VAE
+    vae_config = VAEConfig() if args.vae_steps is None else VAEConfig(steps_reconstruction=args.vae_steps[0], steps_collision=args.vae_steps[1])
+    train_X = load_canonical(canonical_paths)
+    vae, vae_record = train_vae(np.concatenate([train_X, asset.vertices[None].astype(np.float32)]), asset.vertices, asset.faces, asset.edges,
+                                diffused, vae_config, load_canonical([v[2] for v in validation]), collision=not args.no_collision)
+    out = OUT_DIR / (args.garment + ("_nocol" if args.no_collision else ""))
+    out.mkdir(parents=True, exist_ok=True)
+    torch.save(vae.state_dict(), out / "vae.pt")
+    vae_record["export"] = export_decoder(vae, out / "decoder.onnx", metadata_record(vae_record))
+
+    # 4: regressor on the VAE's encodings of the training frames
+    with torch.no_grad():
+        for s, path in zip(sequences, canonical_paths):
+            s["z"] = vae.encode(torch.as_tensor(load_canonical([path])))[0].numpy()
+    reg, reg_record = train_regressor(sequences, vae.config.latent, RegressorConfig(steps=args.regressor_steps))
+    torch.save(reg.state_dict(), out / "regressor.pt")
+
+    # 5: validation score against newton, and the template through eq. 6.7
+    rows = []
+    with torch.no_grad():
+        z_template = vae.encode(torch.as_tensor(asset.vertices[None].astype(np.float32)))[0]
+    for case, ref, _ in validation:
+        inp = case_inputs(body, case)
+        with np.load(ref, allow_pickle=False) as f:
+            target, body_frames = f["vertices"], f["body_vertices"]
+        canonical = CanonicalBody(diffused, inp["coeffs"])
+        with torch.no_grad():
+            z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
+            X = vae.decoder(z[0]).numpy()
+            X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
+        rows.append({"case": case.name,
+                     "model": score(posed_frames(canonical, X, inp["transforms"]), target, body_frames, body.faces),
+                     "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces),
+                     "canonical_inside": float((diffused.sdf(X) < 0).mean())})
+        log.info("%s", json.dumps(rows[-1]))
+    report = {"garment": args.garment, "train_cases": [c.name for c in train_cases], "data_wall_s": round(t_data, 1),
+              "vae": {k: vae_record[k] for k in ("config", "train_wall_s", "frames", "metrics", "export", "collision")},
+              "regressor": reg_record, "validation": rows, "wall_s": round(time.perf_counter() - t0, 1),
+              "projection": asdict(ProjectionSettings())}
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    log.info("wrote %s", out / "report.json")
+
+
+if __name__ == "__main__":
+    main()
