@@ -69,28 +69,29 @@ class CanonicalBody:
         table = diffused.shape_grid.table.astype(np.float64).reshape(-1, diffused.components, 3)
         self.skin = TorchGrid(diffused.skin_grid, dtype=dtype)
         self.offsets = TorchGrid(diffused.shape_grid, np.einsum("nkc,k->nc", table, a), dtype=dtype)
-        self.bones = diffused.bones
+        self.bone_index = torch.as_tensor(diffused.bone_index)
 
     def fields(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """W~(X) (V, J) rows summing to 1, SDF(X) (V,) m, B~s(X, beta) (V, 3) m."""
+        """W~(X) (V, K) over the kept bones ``bone_index`` (rows summing to 1), SDF(X) (V,) m,
+        B~s(X, beta) (V, 3) m."""
         s = self.skin(X)
-        w = torch.clamp(s[:, : self.bones], min=0.0)
+        w = torch.clamp(s[:, :-1], min=0.0)
         w = w / torch.clamp(w.sum(-1, keepdim=True), min=1e-12)
-        return w, s[:, self.bones], self.offsets(X)
+        return w, s[:, -1], self.offsets(X)
 
     def pose(self, X: torch.Tensor, transforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """M_G (eq. 6.7) of X (V, 3) under skinning transforms (J, 4, 4); returns the posed
         garment (V, 3), T_G(X, beta) (V, 3) and SDF(X) (V,)."""
         w, sdf, offsets = self.fields(X)
         shaped = X + offsets
-        A = torch.einsum("vj,jab->vab", w, transforms[:, :3, :])  # (V, 3, 4) blended transforms
+        A = torch.einsum("vj,jab->vab", w, transforms[self.bone_index, :3, :])  # (V, 3, 4) blended transforms
         posed = torch.einsum("vab,vb->va", A[:, :, :3], shaped) + A[:, :, 3]
         return posed, shaped, sdf
 
     def unpose(self, x: torch.Tensor, X_fields: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
         """Inverse of eq. 6.7 with the fields frozen at X_fields (V, 3): the start of a solve."""
         w, _, offsets = self.fields(X_fields)
-        A = torch.einsum("vj,jab->vab", w, transforms[:, :3, :])
+        A = torch.einsum("vj,jab->vab", w, transforms[self.bone_index, :3, :])
         shaped = torch.linalg.solve(A[:, :, :3], (x - A[:, :, 3])[..., None])[..., 0]
         return shaped - offsets
 
