@@ -43,3 +43,12 @@ def test_regressor_fits_sequences_and_runs_in_chunks():
         b, _ = model(ph, g[:, 10:], h)
     np.testing.assert_allclose(torch.cat([a, b], 1).numpy(), whole.numpy(), atol=1e-5)
     assert isinstance(model, CanonicalRegressor)
+
+
+def test_regressor_exports_with_parity(tmp_path):
+    pytest.importorskip("onnxruntime")
+    from training.canonical_regressor import export_regressor
+
+    model, _ = train_regressor(_sequences(n=2, F=378), 5, RegressorConfig(hidden=16, layers=2, steps=2, window=8, batch=2))
+    out = export_regressor(model, tmp_path / "regressor.onnx")
+    assert out["parity_max_abs"] <= 1e-4 and out["outputs"]["z"] == ["B", "T", 5]

@@ -97,3 +97,42 @@ def train_regressor(sequences: list[dict], latent: int, config: RegressorConfig 
             history.append({"step": step, "loss": float(loss.detach())})
     return model.eval(), {"config": asdict(config), "train_wall_s": round(time.perf_counter() - t0, 1), "history": history,
                           "sequences": len(sequences)}
+
+
+def export_regressor(model: CanonicalRegressor, path, seed: int = 0, tolerance: float = 1e-4) -> dict:
+    """regressor.onnx: phenotypes (B, 6), gamma (B, T, F), h0 (L, B, H) -> z (B, T, latent), hT
+    (L, B, H), a whole sequence per call (the ONNX GRU op); parity with torch over several B, T."""
+    import warnings
+
+    import onnxruntime as ort
+
+    from training.export_onnx import OPSET, _random_phenotypes, _sha256
+
+    model = model.eval()
+    F, L, H = len(model.gamma_mean), model.layers, model.hidden
+    rng = np.random.default_rng(seed)
+    mean, std = model.gamma_mean.numpy(), model.gamma_std.numpy()
+
+    def gamma(B: int, T: int) -> np.ndarray:
+        return (mean + std * rng.standard_normal((B, T, F))).astype(np.float32)
+
+    args = (torch.as_tensor(_random_phenotypes(2, rng)), torch.as_tensor(gamma(2, 4)), torch.zeros(L, 2, H))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exporter's note on GRU batch sizes: h0 is an input here
+        torch.onnx.export(model, args, str(path), input_names=["phenotypes", "gamma", "h0"], output_names=["z", "hT"],
+                          opset_version=OPSET, dynamo=False,
+                          dynamic_axes={"phenotypes": {0: "B"}, "gamma": {0: "B", 1: "T"}, "h0": {1: "B"}, "z": {0: "B", 1: "T"}, "hT": {1: "B"}})
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for B, T in ((1, 1), (1, 9), (3, 5)):
+        p, g = _random_phenotypes(B, rng), gamma(B, T)
+        h0 = (0.1 * rng.standard_normal((L, B, H))).astype(np.float32)
+        z, hT = sess.run(None, {"phenotypes": p, "gamma": g, "h0": h0})
+        with torch.no_grad():
+            rz, rh = model(torch.as_tensor(p), torch.as_tensor(g), torch.as_tensor(h0))
+        worst = max(worst, float(np.abs(z - rz.numpy()).max()), float(np.abs(hT - rh.numpy()).max()))
+    if not worst <= tolerance:
+        raise RuntimeError(f"{path.name}: parity {worst:.3g} exceeds {tolerance}")
+    return {"file": path.name, "sha256": _sha256(path), "bytes": path.stat().st_size, "opset": OPSET,
+            "inputs": {"phenotypes": ["B", 6], "gamma": ["B", "T", F], "h0": [L, "B", H]},
+            "outputs": {"z": ["B", "T", int(model.head.out_features)], "hT": [L, "B", H]}, "parity_max_abs": worst}

@@ -34,7 +34,7 @@ from inference.diffused import DiffusedBody
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
 from inference.motion.descriptor import motion_descriptor
-from training.canonical_regressor import RegressorConfig, train_regressor
+from training.canonical_regressor import RegressorConfig, export_regressor, train_regressor
 from training.canonical_vae import VAEConfig, export_decoder, load_canonical, metadata_record, train_vae
 from training.datasets import REPO_ROOT, TRAIN_CLIPS
 from training.physics import ClothGeometry
@@ -143,6 +143,7 @@ def main(argv: list[str] | None = None) -> None:
             s["z"] = vae.encode(torch.as_tensor(load_canonical([path])))[0].numpy()
     reg, reg_record = train_regressor(sequences, vae.config.latent, RegressorConfig(steps=args.regressor_steps))
     torch.save(reg.state_dict(), out / "regressor.pt")
+    reg_record["export"] = export_regressor(reg, out / "regressor.onnx")
 
     # 5: validation score against newton, and the template through eq. 6.7
     rows = []
