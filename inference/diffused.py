@@ -162,3 +162,32 @@ class DiffusedBody:
         if X.ndim != 3 or X.shape[-1] != 3:
             raise InputShapeError("X", "(B, V, 3)", X.shape)
         return X + self.shape_offsets(X, body_coeffs), self.weights(X)
+
+    def offset_grid(self, body_coeffs: np.ndarray) -> Grid:
+        """B~s(., beta) of one body as a 3-channel grid: the basis contracted with a(beta) once
+        per body, sum_k a_k U~_k(node), so a lookup reads 3 channels instead of 3 r.
+        body_coeffs : (135,) or (1, 135)."""
+        a = self.shape_coefficients(np.asarray(body_coeffs, np.float64).reshape(1, -1))[0]
+        table = self.shape_grid.table.reshape(len(self.shape_grid.table), self.components, 3)
+        fields = np.einsum("nkc,k->nc", table, a, optimize=True).reshape(tuple(self.shape_grid.dims) + (3,))
+        return Grid(self.shape_grid.origin, self.shape_grid.spacing, fields)
+
+    def pose(self, X: np.ndarray, offsets: Grid, transforms: np.ndarray) -> np.ndarray:
+        """M_G(X, beta, theta) (eq. 6.7) with W~ and B~s at each frame's own canonical points.
+
+        X          : (T, V, 3) canonical garment per frame, metres
+        offsets    : ``offset_grid(beta)``
+        transforms : (T, J, 4, 4) the body's skinning transforms per frame
+        returns      (T, V, 3) float32 posed garment
+        """
+        X = np.asarray(X, np.float32)
+        if X.ndim != 3 or X.shape[-1] != 3:
+            raise InputShapeError("X", "(T, V, 3)", X.shape)
+        if transforms.shape != (len(X), self.bones, 4, 4):
+            raise InputShapeError("transforms", f"({len(X)}, {self.bones}, 4, 4)", transforms.shape)
+        w = np.maximum(self.skin_grid.interpolate(X, slice(0, -1)), 0.0)  # (T, V, K) over the kept bones
+        w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
+        shaped = X + offsets.interpolate(X)
+        A = np.matmul(w, np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, V, 12)
+        A = A.reshape(X.shape[:2] + (3, 4))
+        return np.einsum("tvab,tvb->tva", A[..., :3], shaped, optimize=True) + A[..., 3]

@@ -131,3 +131,23 @@ def test_canonical_vae_learns_its_frames_and_its_decoder_exports_with_parity(bui
     exported = export_decoder(model, tmp_path / "decoder.onnx", metadata_record(record))
     assert exported["parity_max_abs_m"] <= 1e-4
     assert exported["outputs"]["canonical_vertices"] == ["B", len(asset.vertices), 3]
+
+
+def test_numpy_pose_equals_the_torch_canonical_model(built):
+    """inference.diffused.DiffusedBody.pose (runtime) = training.projection.CanonicalBody.pose."""
+    torch = pytest.importorskip("torch")
+    from training.projection import CanonicalBody
+
+    diffused, _ = built
+    body = BodyModel.load()
+    shape = body.shape(np.array([[0.8, 0.9, 0.3, 0.7, 0.6, 0.2]], np.float32))
+    rng = np.random.default_rng(3)
+    rot = rng.normal(0.0, 0.2, (1, 2, body.num_bones, 3)).astype(np.float32)
+    _, T = body.pose(shape.rest_bone_poses, rot, rng.normal(0.0, 0.1, (1, 2, 3)).astype(np.float32))
+    neutral = body.shape(NEUTRAL_PHENOTYPES[None]).rest_vertices[0, ::40]
+    X = np.stack([neutral + 0.01, neutral + 0.02]).astype(np.float32)
+    got = diffused.pose(X, diffused.offset_grid(shape.coeffs[0]), T[0])
+    tb = CanonicalBody(diffused, shape.coeffs[0])
+    with torch.no_grad():
+        want = np.stack([tb.pose(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(t, dtype=torch.float64))[0].numpy() for x, t in zip(X, T[0])])
+    np.testing.assert_allclose(got, want, atol=2e-5)
