@@ -158,8 +158,13 @@ def main(argv: list[str] | None = None) -> None:
             z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
             X = vae.decoder(z[0]).numpy()
             X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
+        posed = posed_frames(canonical, X, inp["transforms"])
+        # for ``python -m training.contact_sheet --garment G --vertices <this file>``
+        np.savez_compressed(out / f"validation_{case.key}.npz", vertices=posed, body_vertices=body_frames,
+                            faces=np.asarray(asset.faces, np.int32), phenotypes=inp["phenotypes"],
+                            metadata=np.str_(json.dumps({"clip": f"{case.clip} {case.body} canonical", "start": case.start})))
         rows.append({"case": case.name,
-                     "model": score(posed_frames(canonical, X, inp["transforms"]), target, body_frames, body.faces),
+                     "model": score(posed, target, body_frames, body.faces),
                      "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces),
                      "canonical_inside": float((diffused.sdf(X) < 0).mean())})
         log.info("%s", json.dumps(rows[-1]))
