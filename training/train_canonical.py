@@ -1,6 +1,6 @@
 """The canonical-space garment model of thesis ch. 6, end to end for one garment, and its score.
 
-    python -m training.train_canonical --garment tshirt [--clips 02_01 02_03 02_04 01_14] [--bodies neutral heavy]
+    python -m training.train_canonical --garment tshirt [--clips 02_01 02_04 01_14 02_05 02_09] [--bodies neutral heavy]
 
 Steps (each cached under ``build/``):
 1. newton simulations of the garment on the training clips (``training.reference``; frames
@@ -94,7 +94,7 @@ def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, fac
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--garment", required=True)
-    p.add_argument("--clips", nargs="+", default=["02_01", "02_03", "02_04", "01_14"])
+    p.add_argument("--clips", nargs="+", default=["02_01", "02_04", "01_14", "02_05", "02_09"])
     p.add_argument("--bodies", nargs="+", default=["neutral", "heavy"])
     p.add_argument("--start", type=int, default=30)
     p.add_argument("--frames", type=int, default=40)
