@@ -33,6 +33,10 @@ BODIES: dict[str, np.ndarray] = {
     "neutral": np.asarray(NEUTRAL_PHENOTYPES, np.float32),
     "heavy": np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0], np.float32),
     "light-tall": np.array([0.0, 0.77, 0.0, 1.0, 1.0, 0.0], np.float32),
+    # training-only bodies (``training.train_canonical``), away from the test bodies: a short slim
+    # woman and a tall muscular man
+    "train-slim": np.array([0.0, 0.9, 0.3, 0.2, 0.2, 0.7], np.float32),
+    "train-tall": np.array([1.0, 0.8, 0.7, 0.6, 0.8, 0.4], np.float32),
 }
 
 

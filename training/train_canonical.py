@@ -1,18 +1,19 @@
 """The canonical-space garment model of thesis ch. 6, end to end for one garment, and its score.
 
-    python -m training.train_canonical --garment tshirt [--clips 02_01 02_04 01_14 02_05 02_09] [--bodies neutral heavy]
+    python -m training.train_canonical --garment tshirt [--cases 02_01:neutral 02_04:heavy ...]
 
 Steps (each cached under ``build/``):
-1. newton simulations of the garment on the training clips (``training.reference``; frames
-   ``--start`` to ``--start + --frames`` of each clip, every body of ``--bodies``);
+1. newton simulations of the garment on training clips (``training.reference``; frames
+   ``--start`` to ``--start + --frames`` of each clip, on each case's body; ``TRAIN_CASES``);
 2. their projection into the canonical space (``training.projection``, eq. 6.9);
 3. the VAE over the canonical frames (``training.canonical_vae``, eq. 6.13-6.16);
 4. the regressor into its latent (``training.canonical_regressor``, eq. 6.17-6.18);
-5. the score on the validation cases (``training.protocol.SPLITS['validation']``, never a test
-   clip): the posed garment M_G(D(R(beta, gamma)), beta, theta) (eq. 6.7) against the newton
-   reference of the same case: mean vertex error (cm), share of vertices inside the posed body
-   (no collision stage), and the same for the template through eq. 6.7 (z of the template: the
-   diffused skinning alone) as the in-model baseline.
+5. the judge's numbers (``training.judge``) on the validation cases, where choices are made, and
+   on the test cases, reported only: the posed garment M_G(D(R(beta, gamma)), beta, theta)
+   (eq. 6.7) against the newton reference of the same case: mean vertex error (cm), realism,
+   collisions before and after the final exact stage (``inference.repair.exact_repair``) and its
+   moves; the same for the template through eq. 6.7 (the diffused skinning alone), and the
+   judge's cached baseline rows for comparison.
 
 Writes ``build/canonical_model/<garment>/``: ``vae.pt``, ``decoder.onnx``, ``regressor.pt``,
 ``report.json``.
@@ -48,6 +49,11 @@ BUILD = REPO_ROOT / "build"
 TRAIN_REFERENCE_DIR = BUILD / "reference" / "train"
 CANONICAL_DIR = BUILD / "canonical"
 OUT_DIR = BUILD / "canonical_model"
+# the training simulations: training clips long enough for the window (02_03 has 44 frames), on
+# the neutral and heaviest bodies and two training-only bodies (never a test body)
+TRAIN_CASES = ("02_01:neutral", "02_01:heavy", "02_04:neutral", "02_04:heavy", "01_14:neutral", "01_14:heavy",
+               "02_05:neutral", "02_05:heavy", "02_09:neutral", "02_01:train-slim", "02_04:train-tall",
+               "02_01:train-tall", "02_04:train-slim")
 
 
 def project(reference: Path, out: Path, body: BodyModel, catalog: GarmentCatalog, diffused: DiffusedBody) -> Path:
@@ -83,19 +89,43 @@ def posed_frames(canonical: CanonicalBody, X: np.ndarray, transforms: np.ndarray
     return np.stack(out).astype(np.float32)
 
 
-def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, faces: np.ndarray) -> dict:
-    """Mean vertex error (cm) against the reference, and the share of vertices inside the posed body."""
-    err = np.linalg.norm(posed - reference, axis=-1)
-    inside = inside_mask(posed, body_frames, faces)
-    return {"error_mean_cm": float(err.mean() * 100), "error_p99_cm": float(np.percentile(err, 99) * 100),
-            "inside": float(inside.mean()), "inside_worst_frame": float(inside.mean(1).max())}
+def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, body_faces: np.ndarray, asset, judged: dict | None) -> dict:
+    """The judge's numbers for one method on one case (``training.judge.judge_case``): mean vertex
+    error (cm) against the reference, realism and its failures (against the reference and the
+    retarget baseline of the judge's cached row ``judged``, if any), collisions before and after
+    the final exact stage (``inference.repair.exact_repair``, margin = the garment's collision
+    margin) and that stage's largest moves (mm)."""
+    from inference.metrics import realism
+    from inference.repair import exact_repair
+    from training.judge import _collisions, mean_error_cm, realism_failures, worse_on_realism
+
+    after, left = exact_repair(posed[None], body_frames[None], body_faces, float(asset.material["collision_margin_m"]))
+    after = after[0]
+    move = np.linalg.norm(after - posed, axis=-1) * 1e3
+    moved = move[move > 0]
+    r = realism(posed, asset.faces, asset.rest_vertices, asset.edges)
+    out = {"error_cm": mean_error_cm(posed, reference), "error_after_cm": mean_error_cm(after, reference), "realism": r,
+           "collisions_before": _collisions(posed, body_frames, body_faces), "collisions_after": _collisions(after, body_frames, body_faces),
+           "left_inside": int(left), "moved_pct": float((move > 0).mean() * 100),
+           "move_p99_mm": float(np.percentile(moved, 99)) if len(moved) else 0.0, "move_max_mm": float(move.max())}
+    if judged is not None:
+        ref_r, base = judged["reference"]["realism"], judged["methods"]["retarget"]["realism"]
+        out["realism_vs_reference"] = realism_failures(r, ref_r)
+        out["realism_failures"] = worse_on_realism(r, ref_r, base)
+    return out
+
+
+def judged_row(garment: str, case: Case) -> dict | None:
+    """The judge's cached row of this garment and case (``build/judge/rows``), if any."""
+    path = BUILD / "judge" / "rows" / f"{garment}_{case.key}.json"
+    return json.loads(path.read_text())["row"] if path.exists() else None
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--garment", required=True)
-    p.add_argument("--clips", nargs="+", default=["02_01", "02_04", "01_14", "02_05", "02_09"])
-    p.add_argument("--bodies", nargs="+", default=["neutral", "heavy"])
+    p.add_argument("--cases", nargs="+", default=list(TRAIN_CASES), metavar="CLIP:BODY",
+                   help="training simulations: a training clip and a body of training.protocol.BODIES each")
     p.add_argument("--start", type=int, default=30)
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--diffused", type=Path, default=BUILD / "diffused" / "diffused.npz")
@@ -104,16 +134,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    for clip in args.clips:
-        if clip not in TRAIN_CLIPS:
-            raise SystemExit(f"{clip} is not a training clip ({', '.join(TRAIN_CLIPS)})")
+    pairs = [c.split(":") for c in args.cases]
+    for clip, name in pairs:
+        if clip not in TRAIN_CLIPS or name not in BODIES:
+            raise SystemExit(f"{clip}:{name}: not a training clip ({', '.join(TRAIN_CLIPS)}) and a body ({', '.join(BODIES)})")
     t0 = time.perf_counter()
     body, catalog, diffused = BodyModel.load(), GarmentCatalog.load(), DiffusedBody.load(args.diffused)
     asset = catalog.get(args.garment)
     settings = ReferenceSettings(device="cpu")
 
     # 1-2: simulations and their projections
-    train_cases = [Case(c, b, args.start, args.frames) for c in args.clips for b in args.bodies]
+    train_cases = [Case(c, b, args.start, args.frames) for c, b in pairs]
     sequences, canonical_paths = [], []
     for case in train_cases:
         ref = simulate_case(args.garment, case, settings, TRAIN_REFERENCE_DIR, body, catalog)
@@ -145,32 +176,41 @@ def main(argv: list[str] | None = None) -> None:
     torch.save(reg.state_dict(), out / "regressor.pt")
     reg_record["export"] = export_regressor(reg, out / "regressor.onnx")
 
-    # 5: validation score against newton, and the template through eq. 6.7
+    # 5: scores against newton: validation (where choices are made) and test (reported only)
     rows = []
     with torch.no_grad():
         z_template = vae.encode(torch.as_tensor(asset.vertices[None].astype(np.float32)))[0]
-    for case, ref, _ in validation:
-        inp = case_inputs(body, case)
-        with np.load(ref, allow_pickle=False) as f:
-            target, body_frames = f["vertices"], f["body_vertices"]
-        canonical = CanonicalBody(diffused, inp["coeffs"])
-        with torch.no_grad():
-            z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
-            X = vae.decoder(z[0]).numpy()
-            X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
-        posed = posed_frames(canonical, X, inp["transforms"])
-        # for ``python -m training.contact_sheet --garment G --vertices <this file>``
-        np.savez_compressed(out / f"validation_{case.key}.npz", vertices=posed, body_vertices=body_frames,
-                            faces=np.asarray(asset.faces, np.int32), phenotypes=inp["phenotypes"],
-                            metadata=np.str_(json.dumps({"clip": f"{case.clip} {case.body} canonical", "start": case.start})))
-        rows.append({"case": case.name,
-                     "model": score(posed, target, body_frames, body.faces),
-                     "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces),
-                     "canonical_inside": float((diffused.sdf(X) < 0).mean())})
-        log.info("%s", json.dumps(rows[-1]))
+    for split in ("validation", "test"):
+        for case in SPLITS[split]:
+            ref = reference_path(args.garment, case.key, ReferenceSettings(), REFERENCE_DIR)
+            if not ref.exists():
+                log.warning("no reference for %s on %s", args.garment, case.name)
+                continue
+            inp = case_inputs(body, case)
+            with np.load(ref, allow_pickle=False) as f:
+                target, body_frames = f["vertices"], f["body_vertices"]
+            canonical = CanonicalBody(diffused, inp["coeffs"])
+            with torch.no_grad():
+                z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
+                X = vae.decoder(z[0]).numpy()
+                X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
+            posed = posed_frames(canonical, X, inp["transforms"])
+            # for ``python -m training.contact_sheet --garment G --vertices <this file>``
+            np.savez_compressed(out / f"{split}_{case.key}.npz", vertices=posed, body_vertices=body_frames,
+                                faces=np.asarray(asset.faces, np.int32), phenotypes=inp["phenotypes"],
+                                metadata=np.str_(json.dumps({"clip": f"{case.clip} {case.body} canonical", "start": case.start})))
+            judged = judged_row(args.garment, case)
+            rows.append({"split": split, "case": case.name,
+                         "model": score(posed, target, body_frames, body.faces, asset, judged),
+                         "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces, asset, judged),
+                         "canonical_inside": float((diffused.sdf(X) < 0).mean()),
+                         "judge": None if judged is None else {m: {"error_cm": v["error_cm"], "inside_before": v["collisions_before"],
+                                                                   "realism_failures": v.get("realism_failures")}
+                                                               for m, v in judged["methods"].items()}})
+            log.info("%s", json.dumps(rows[-1]))
     report = {"garment": args.garment, "train_cases": [c.name for c in train_cases], "data_wall_s": round(t_data, 1),
               "vae": {k: vae_record[k] for k in ("config", "train_wall_s", "frames", "metrics", "export", "collision")},
-              "regressor": reg_record, "validation": rows, "wall_s": round(time.perf_counter() - t0, 1),
+              "regressor": reg_record, "cases": rows, "wall_s": round(time.perf_counter() - t0, 1),
               "projection": asdict(ProjectionSettings())}
     (out / "report.json").write_text(json.dumps(report, indent=1))
     log.info("wrote %s", out / "report.json")
