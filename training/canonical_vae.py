@@ -265,7 +265,7 @@ def load_canonical(paths: list[Path]) -> np.ndarray:
 
 
 def metadata_record(record: dict) -> dict:
-    """The record without the metadata fields ``_record_metadata`` expects to be present."""
+    """The fields of a training record that the ONNX file's metadata carries (``training.export_onnx._record_metadata``)."""
     return {"config": record["config"], "train_wall_s": record["train_wall_s"], "metrics": record["metrics"],
             "steps": len(record["history"])}
 
