@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from inference.body import ASSETS_DIR
+from inference.body import ASSETS_DIR, linear_blend_skinning
 from inference.errors import InputShapeError
 
 DEFAULT_PATH = ASSETS_DIR / "body" / "diffused.npz"
@@ -191,3 +191,24 @@ class DiffusedBody:
         A = np.matmul(w, np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, V, 12)
         A = A.reshape(X.shape[:2] + (3, 4))
         return np.einsum("tvab,tvb->tva", A[..., :3], shaped, optimize=True) + A[..., 3]
+
+    def fields_at(self, points: np.ndarray, body_coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """W~ (V, J) and B~s(., beta) (V, 3) at one set of points (V, 3): the skinning attributes
+        of a request's garment frozen at one canonical shape (``pose_frozen``); the shape basis is
+        read at the points and contracted there (V x 3 r), not over the whole grid."""
+        p = np.asarray(points, np.float32)
+        a = self.shape_coefficients(np.asarray(body_coeffs, np.float64).reshape(1, -1))[0]
+        basis = self.shape_grid.interpolate(p).reshape(len(p), self.components, 3)
+        return self.weights(p), np.einsum("vkc,k->vc", basis, a, optimize=True)
+
+    def pose_frozen(self, X: np.ndarray, weights: np.ndarray, offsets: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+        """eq. 6.7 with W~ and B~s frozen at one canonical shape X_bar (``fields_at(X_bar)``):
+        sum_j W~_j(X_bar) T_j (X_t + B~s(X_bar, beta)) for every frame t. Differs from ``pose``
+        by the change of the fields between X_bar and X_t (measured in docs/benchmarks.md).
+
+        X : (T, V, 3) ; weights : (V, J) ; offsets : (V, 3) ; transforms (T, J, 4, 4) -> (T, V, 3) float32
+        """
+        X = np.asarray(X, np.float32)
+        if X.ndim != 3 or X.shape[1:] != offsets.shape or weights.shape != (X.shape[1], self.bones):
+            raise InputShapeError("X", f"(T, {len(offsets)}, 3) with weights ({len(offsets)}, {self.bones})", X.shape)
+        return linear_blend_skinning((X + offsets)[None], weights, np.asarray(transforms, np.float32)[None])[0]
