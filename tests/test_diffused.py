@@ -151,3 +151,7 @@ def test_numpy_pose_equals_the_torch_canonical_model(built):
     with torch.no_grad():
         want = np.stack([tb.pose(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(t, dtype=torch.float64))[0].numpy() for x, t in zip(X, T[0])])
     np.testing.assert_allclose(got, want, atol=2e-5)
+    # the fields frozen at X_bar equal the per-frame ones where every frame is X_bar
+    Xc = np.repeat(X[:1], 2, 0)
+    w, off = diffused.fields_at(Xc[0], shape.coeffs[0])
+    np.testing.assert_allclose(diffused.pose_frozen(Xc, w, off, T[0]), diffused.pose(Xc, diffused.offset_grid(shape.coeffs[0]), T[0]), atol=2e-5)
