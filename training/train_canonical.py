@@ -89,7 +89,7 @@ def posed_frames(canonical: CanonicalBody, X: np.ndarray, transforms: np.ndarray
     return np.stack(out).astype(np.float32)
 
 
-def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, body_faces: np.ndarray, asset, judged: dict | None) -> dict:
+def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, body_faces: np.ndarray, asset, judged: dict | None) -> tuple[dict, np.ndarray]:
     """The judge's numbers for one method on one case (``training.judge.judge_case``): mean vertex
     error (cm) against the reference, realism and its failures (against the reference and the
     retarget baseline of the judge's cached row ``judged``, if any), collisions before and after
@@ -112,7 +112,7 @@ def score(posed: np.ndarray, reference: np.ndarray, body_frames: np.ndarray, bod
         ref_r, base = judged["reference"]["realism"], judged["methods"]["retarget"]["realism"]
         out["realism_vs_reference"] = realism_failures(r, ref_r)
         out["realism_failures"] = worse_on_realism(r, ref_r, base)
-    return out
+    return out, after
 
 
 def judged_row(garment: str, case: Case) -> dict | None:
@@ -195,14 +195,15 @@ def main(argv: list[str] | None = None) -> None:
                 X = vae.decoder(z[0]).numpy()
                 X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
             posed = posed_frames(canonical, X, inp["transforms"])
-            # for ``python -m training.contact_sheet --garment G --vertices <this file>``
-            np.savez_compressed(out / f"{split}_{case.key}.npz", vertices=posed, body_vertices=body_frames,
-                                faces=np.asarray(asset.faces, np.int32), phenotypes=inp["phenotypes"],
-                                metadata=np.str_(json.dumps({"clip": f"{case.clip} {case.body} canonical", "start": case.start})))
             judged = judged_row(args.garment, case)
-            rows.append({"split": split, "case": case.name,
-                         "model": score(posed, target, body_frames, body.faces, asset, judged),
-                         "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces, asset, judged),
+            model_score, after = score(posed, target, body_frames, body.faces, asset, judged)
+            # for ``python -m training.contact_sheet --garment G --vertices <file>``: before and after the final stage
+            for suffix, frames in (("_before", posed), ("", after)):
+                np.savez_compressed(out / f"{split}_{case.key}{suffix}.npz", vertices=frames, body_vertices=body_frames,
+                                    faces=np.asarray(asset.faces, np.int32), phenotypes=inp["phenotypes"],
+                                    metadata=np.str_(json.dumps({"clip": f"{case.clip} {case.body} canonical{suffix}", "start": case.start})))
+            rows.append({"split": split, "case": case.name, "model": model_score,
+                         "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces, asset, judged)[0],
                          "canonical_inside": float((diffused.sdf(X) < 0).mean()),
                          "judge": None if judged is None else {m: {"error_cm": v["error_cm"], "inside_before": v["collisions_before"],
                                                                    "realism_failures": v.get("realism_failures")}
