@@ -1,10 +1,14 @@
-"""Per-stage cost of the canonical-space garment model (thesis ch. 6) on one request.
+"""Per-stage cost of fit 'canonical' (thesis ch. 6, ``inference.canonical``) on one request.
 
-    python bench/bench_canonical.py --model-dir build/canonical_model/tshirt [--frames 30] [--repeats 5]
+    python bench/bench_canonical.py [--garment tshirt] [--frames 30] [--repeats 5] [--model-dir DIR]
 
-Needs what ``python -m training.train_canonical --garment G`` writes (regressor.onnx,
-decoder.onnx) and the diffused body it used (``--diffused``). One thread (onnxruntime intra-op 1,
-BLAS 1), the 02_02 walk (validation clip) on the heavy body, ``--frames`` frames as one request.
+One thread (BLAS 1, onnxruntime intra-op 1), the 02_02 walk (validation clip) on the heavy body,
+``--frames`` frames as one request. Stages: the body's offsets contracted from the diffused
+kernels (once per body), W~ and B~s at the garment's canonical points (once per request for a
+static X), the skinning per frame, and the final exact stage; then eq. 6.7 with the fields read
+at every frame's own points (``DiffusedBody.pose``: what a per-frame canonical X costs, here X
+plus a 1 cm ripple per frame). With ``--model-dir`` (``training.train_canonical``'s output:
+regressor.onnx, decoder.onnx) also the regressor and the decoder.
 Prints a markdown table: best-of-``--repeats`` ms per request and per garment-frame.
 """
 from __future__ import annotations
@@ -20,12 +24,13 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-import onnxruntime as ort  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from inference.body import BodyModel  # noqa: E402
-from inference.diffused import DiffusedBody  # noqa: E402
+from inference.body import BodyModel, linear_blend_skinning  # noqa: E402
+from inference.canonical import CanonicalModels, push_out  # noqa: E402
+from inference.garment import GarmentCatalog  # noqa: E402
+from inference.repair import exact_repair  # noqa: E402
 
 
 def best(fn, repeats: int) -> tuple[float, object]:
@@ -39,56 +44,69 @@ def best(fn, repeats: int) -> tuple[float, object]:
 
 
 def main() -> None:
-    from training.protocol import Case
-    from training.train_canonical import case_inputs
+    from training.protocol import BODIES, clip_motion, load_clip
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--model-dir", type=Path, required=True)
-    p.add_argument("--diffused", type=Path, default=Path("build/diffused/diffused.npz"))
+    p.add_argument("--garment", default="tshirt")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--model-dir", type=Path, default=None)
     args = p.parse_args()
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = so.inter_op_num_threads = 1
-    reg = ort.InferenceSession(str(args.model_dir / "regressor.onnx"), so, providers=["CPUExecutionProvider"])
-    dec = ort.InferenceSession(str(args.model_dir / "decoder.onnx"), so, providers=["CPUExecutionProvider"])
-    body = BodyModel.load()
-    diffused = DiffusedBody.load(args.diffused)
-    inp = case_inputs(body, Case("02_02", "heavy", 30, args.frames))
+    body, catalog, canonical = BodyModel.load(), GarmentCatalog.load(), CanonicalModels()
+    d, asset = canonical.diffused, catalog.get(args.garment)
+    shape = body.shape(BODIES["heavy"][None])
+    motion = clip_motion(body, shape, load_clip("02_02", body), 30 + args.frames)
     T = args.frames
-    h0 = np.zeros([d if isinstance(d, int) else 1 for d in reg.get_inputs()[2].shape], np.float32)
+    _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, 30:], motion.translation[None, 30:])
+    body_frames = body.skin(shape.rest_vertices, transforms)
+    rest = shape.rest_vertices[0]
+    X = canonical.template(asset)
     rows = []
-    ms, grid = best(lambda: diffused.offset_grid(inp["coeffs"]), args.repeats)
-    rows.append(("B~s contracted with a(beta) (once per body)", ms))
-    feeds = {"phenotypes": inp["phenotypes"][None], "gamma": inp["gamma"][None].astype(np.float32), "h0": h0}
-    ms, (z, _) = best(lambda: reg.run(None, feeds), args.repeats)
-    rows.append(("regressor R (one ORT call, whole sequence)", ms))
-    ms, (X,) = best(lambda: dec.run(None, {"z": z[0]}), args.repeats)
-    rows.append(("decoder D (one ORT call, all frames)", ms))
-    ms, _ = best(lambda: diffused.skin_grid.interpolate(X, slice(0, -1)), args.repeats)
-    rows.append(("W~(X) lookup (23 bones, per frame's points)", ms))
-    ms, _ = best(lambda: grid.interpolate(X), args.repeats)
-    rows.append(("B~s(X, beta) lookup (3 channels)", ms))
-    ms, _ = best(lambda: diffused.pose(X, grid, inp["transforms"]), args.repeats)
-    rows.append(("M_G: W~, B~s and skinning (eq. 6.7, all of it)", ms))
-    posed = diffused.pose(X, grid, inp["transforms"])
-    ms, (w_bar, off_bar) = best(lambda: diffused.fields_at(X.mean(0), inp["coeffs"]), args.repeats)
-    rows.append(("W~, B~s at the request's mean X (frozen, once per request)", ms))
-    ms, frozen = best(lambda: diffused.pose_frozen(X, w_bar, off_bar, inp["transforms"]), args.repeats)
-    rows.append(("M_G with the frozen fields: skinning only", ms))
-    ms, _ = best(lambda: diffused.sdf(X), args.repeats)
-    rows.append(("SDF(X) of the canonical body (check)", ms))
-    print(f"{T} frames, {X.shape[1]} vertices, one thread\n")
+
+    def contract():
+        d._offsets.clear()  # the per-body cache: measure the contraction itself
+        return d.offsets(rest)
+
+    ms, off = best(contract, args.repeats)
+    rows.append(("B~s(., beta) contracted at the nodes (once per body)", ms))
+    ms, w = best(lambda: d.weights(X), args.repeats)
+    rows.append(("W~(X) (once per request, static X)", ms))
+    ms, shaped = best(lambda: d.deshaped_to_shaped(X, off), args.repeats)
+    rows.append(("X + B~s(X, beta) (once per request, static X)", ms))
+    ms, posed = best(lambda: linear_blend_skinning(shaped[None, None].repeat(T, 1), w, transforms), args.repeats)
+    rows.append(("skinning, every frame", ms))
+    ms, _ = best(lambda: exact_repair(posed, body_frames, body.faces, float(asset.material["collision_margin_m"])), args.repeats)
+    rows.append(("final exact stage (winding number + moves), every frame", ms))
+    static = [r[1] for r in rows]
+    ripple = (0.01 * np.sin(np.arange(T)[:, None, None] * 0.3 + 8.0 * X[None, :, 2:3])).astype(np.float32)
+    Xt = (X[None] + ripple * np.array([1.0, 0.0, 0.0], np.float32)).astype(np.float32)
+    ms, Xt = best(lambda: push_out(d, Xt, 0.003)[0], args.repeats)
+    rows.append(("per-frame X: canonical push to the margin (SDF lookup)", ms))
+    ms, _ = best(lambda: d.pose(Xt, off, transforms[0]), args.repeats)
+    rows.append(("per-frame X: eq. 6.7 with W~, B~s at each frame's points", ms))
+    if args.model_dir is not None:
+        import onnxruntime as ort
+
+        from training.train_canonical import case_inputs
+        from training.protocol import Case
+
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = so.inter_op_num_threads = 1
+        reg = ort.InferenceSession(str(args.model_dir / "regressor.onnx"), so, providers=["CPUExecutionProvider"])
+        dec = ort.InferenceSession(str(args.model_dir / "decoder.onnx"), so, providers=["CPUExecutionProvider"])
+        inp = case_inputs(body, Case("02_02", "heavy", 30, T))
+        h0 = np.zeros([dim if isinstance(dim, int) else 1 for dim in reg.get_inputs()[2].shape], np.float32)
+        feeds = {"phenotypes": inp["phenotypes"][None], "gamma": inp["gamma"][None].astype(np.float32), "h0": h0}
+        ms, (z, _) = best(lambda: reg.run(None, feeds), args.repeats)
+        rows.append(("regressor R (one ORT call, whole sequence)", ms))
+        ms, _ = best(lambda: dec.run(None, {"z": z[0]}), args.repeats)
+        rows.append(("decoder D (one ORT call, all frames)", ms))
+    print(f"{args.garment}, {T} frames, {len(X)} vertices, heavy body, one thread\n")
     print("| stage | ms per request | ms per garment-frame |\n|---|---|---|")
     for name, ms in rows:
         print(f"| {name} | {ms:.2f} | {ms / T:.3f} |")
-    ms = dict(rows)
-    exact = ms[rows[0][0]] + ms[rows[1][0]] + ms[rows[2][0]] + ms[rows[5][0]]
-    fast = ms[rows[1][0]] + ms[rows[2][0]] + ms[rows[6][0]] + ms[rows[7][0]]
-    print(f"| **total, fields per frame** (contraction + R + D + M_G) | {exact:.2f} | {exact / T:.3f} |")
-    print(f"| **total, frozen fields** (R + D + fields at mean X + skinning) | {fast:.2f} | {fast / T:.3f} |")
-    d = np.linalg.norm(frozen - posed, axis=-1) * 1e3
-    print(f"\nfrozen against per-frame fields: mean {d.mean():.2f} mm, p99 {np.percentile(d, 99):.2f} mm, max {d.max():.2f} mm")
+    total = sum(static)
+    print(f"| **total, static canonical X** (the five stages above) | {total:.2f} | {total / T:.3f} |")
 
 
 if __name__ == "__main__":

@@ -26,11 +26,11 @@ from inference.body import ASSETS_DIR
 from inference.errors import InputValueError
 from inference.garment import catalog_ids
 
-FitMode = Literal["learned", "retarget", "none"]
+FitMode = Literal["canonical", "learned", "retarget", "none"]
 DynamicsMode = Literal["learned", "none"]
 FIT_MODES: tuple[str, ...] = get_args(FitMode)
 DYNAMICS_MODES: tuple[str, ...] = get_args(DynamicsMode)
-DEFAULT_FIT_MODES: tuple[str, ...] = ("learned", "retarget")  # fit 'none' is explicit only (module docstring)
+DEFAULT_FIT_MODES: tuple[str, ...] = ("canonical", "learned", "retarget")  # fit 'none' is explicit only (module docstring)
 DEFAULTS_FILE = "models/defaults.json"  # relative to the assets folder
 DEFAULTS_FORMAT = 1
 _ENTRY_KEYS = frozenset({"fit", "dynamics", "reason", "evidence"})
@@ -42,8 +42,8 @@ class DefaultMethodsError(ValueError):
 
 @dataclass(frozen=True)
 class Method:
-    """What one garment runs: fit 'learned' | 'retarget' | 'none', dynamics 'learned' | 'none'
-    (``inference.pipeline`` describes each)."""
+    """What one garment runs: fit 'canonical' | 'learned' | 'retarget' | 'none', dynamics
+    'learned' | 'none' (``inference.pipeline`` describes each)."""
 
     fit: FitMode
     dynamics: DynamicsMode

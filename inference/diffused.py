@@ -3,123 +3,194 @@
 Eq. 6.4-6.5 give, for any point p near the canonical body (the neutral adult in the rest
 A-pose), skinning weights W~(p) (J,) and shape offsets B~s(p, beta) (3,) by averaging the body's
 surface values over a Gaussian neighbourhood whose width is the distance to the body; plus the
-signed distance SDF(p) to the canonical skin. ``training.assets.build_diffused_body`` samples
-them on a regular grid; this module reads them by trilinear interpolation:
+signed distance SDF(p) to the canonical skin. ``training.assets.build_diffused_body`` stores, at
+the nodes of two grids, the *kernel* of that average: skin vertices k_j and weights c_j with
+
+    W~(node) = sum_j c_j W(k_j),      B~s(node, beta) = sum_j c_j (v_{k_j}(beta) - v_{k_j}(neutral))
+
+so W~ is contracted once at load, B~s once per body (``offsets``), from the body's own rest
+vertices: exact at the skin for every body. A point reads the fields by trilinear interpolation
 
     f(p) = sum over the 8 nodes c of the cell holding p of  prod_i (1 - |p_i - c_i| / h) f(c)
 
-(clamped to the grid's box: a point beyond it takes the value at the box's face).
+on the fine grid, which holds the band of nodes around the skin (``BandGrid``); a corner outside
+the band takes the coarse grid's interpolation at that corner, so f is continuous everywhere.
+Points beyond the box take the value at its face (clamped).
 
 The canonical garment model (eq. 6.7-6.8, without pose correctives: anny has none):
 
-    T_G(X, beta) = X + B~s(X, beta),   B~s(X, beta) = sum_k a_k(beta) U~_k(X),  a = (c(beta) - c_n) A
+    T_G(X, beta) = X + B~s(X, beta)
     M_G(X, beta, theta) = sum_j W~_j(X) T_j(beta, theta) T_G(X, beta)
 
-with c the body's blendshape coefficients, c_n the neutral body's, and T_j the skinning
-transforms of the shaped body from its rest pose (``BodyModel.pose``). X is the garment in the
-canonical space: unposed and deshaped, on the neutral body.
+with T_j the skinning transforms of the shaped body from its rest pose (``BodyModel.pose``).
+X is the garment in the canonical space: unposed and deshaped, on the neutral body.
 
 Units: metres. Shapes: batch first; points (..., 3).
 """
 from __future__ import annotations
 
 import json
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
 
-from inference.body import ASSETS_DIR, linear_blend_skinning
+from inference.body import ASSETS_DIR
 from inference.errors import InputShapeError
 
 DEFAULT_PATH = ASSETS_DIR / "body" / "diffused.npz"
+# Points interpolated at once: bounds the (points, 8, channels) gather (~24 channels: 6 MB).
+POINT_BLOCK = 8192
+# Bodies whose contracted offsets are kept (a request's body is contracted once).
+OFFSET_CACHE = 8
+CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)  # i-major
 
 
 class Grid:
-    """Channels sampled on a regular grid (nodes (nx, ny, nz), spacing h, corner ``origin``),
-    read by trilinear interpolation (module docstring), clamped to the grid's box."""
+    """A regular grid (nodes ``dims`` (nx, ny, nz), spacing h, corner ``origin``) and, optionally,
+    channels at its nodes (``table`` (nodes, C), i-major), read by trilinear interpolation (module
+    docstring), clamped to the grid's box."""
 
-    def __init__(self, origin: np.ndarray, spacing: float, fields: np.ndarray):
-        if fields.ndim != 4 or min(fields.shape[:3]) < 2:
-            raise InputShapeError("fields", "(nx, ny, nz, C), n >= 2", fields.shape)
+    def __init__(self, origin: np.ndarray, spacing: float, dims, table: np.ndarray | None = None):
         self.origin = np.asarray(origin, np.float32)
         self.spacing = float(spacing)
-        self.dims = np.array(fields.shape[:3], np.int64)
-        # (nodes, C) float32: numpy's float16 -> float32 conversion of the gathered rows costs
-        # more than the gather itself (measured 6.4 against 1.8 ms for 5k points x 32 channels)
-        self.table = np.ascontiguousarray(fields.reshape(-1, fields.shape[-1]), dtype=np.float32)
+        self.dims = np.array([int(d) for d in dims], np.int64)
+        if len(self.dims) != 3 or self.dims.min() < 2:
+            raise InputShapeError("dims", "(nx, ny, nz), n >= 2", tuple(self.dims))
+        n = int(np.prod(self.dims))
+        self.table = np.zeros((n, 0), np.float32) if table is None else np.ascontiguousarray(table, np.float32).reshape(n, -1)
         self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], np.int64)
-        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], np.int64)
-        self._corner_offsets = corners @ self.strides  # the 8 corners of a cell as flat node offsets, i-major
-        self._tables: dict[tuple, np.ndarray] = {}
+        self.corner_offsets = CORNERS @ self.strides
+
+    @classmethod
+    def from_fields(cls, origin: np.ndarray, spacing: float, fields: np.ndarray) -> "Grid":
+        """A grid of fields (nx, ny, nz, C)."""
+        if fields.ndim != 4:
+            raise InputShapeError("fields", "(nx, ny, nz, C)", fields.shape)
+        return cls(origin, spacing, fields.shape[:3], fields.reshape(-1, fields.shape[-1]))
 
     @property
     def channels(self) -> int:
         return int(self.table.shape[1])
 
-    def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The 8 corner nodes (N, 8) int64 of each point's cell and their trilinear weights (N, 8) float32."""
+    def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each point's cell: its lowest node (N, 3) int64, the 8 corner nodes (N, 8) as flat
+        ids (i-major) and their trilinear weights (N, 8) float32."""
         u = (np.asarray(points, np.float32).reshape(-1, 3) - self.origin) * np.float32(1.0 / self.spacing)
         u = np.clip(u, 0.0, (self.dims - 1).astype(np.float32))
         i0 = np.minimum(u.astype(np.int64), self.dims - 2)
         t = u - i0  # (N, 3) in [0, 1]
-        base = i0[:, 0] * self.strides[0] + i0[:, 1] * self.strides[1] + i0[:, 2]
         a = np.stack([1.0 - t, t], 1)  # (N, 2, 3): the 1-D weights of the lower and upper node per axis
         w = (a[:, :, None, None, 0] * a[:, None, :, None, 1] * a[:, None, None, :, 2]).reshape(len(u), 8)
-        return base[:, None] + self._corner_offsets[None], w
+        return i0, (i0 @ self.strides)[:, None] + self.corner_offsets[None], w
 
-    def _channel_table(self, channels: slice) -> np.ndarray:
-        """A contiguous copy of some channels, kept (np.take would copy a strided view per call)."""
-        key = channels.indices(self.channels)
-        if key not in self._tables:
-            self._tables[key] = np.ascontiguousarray(self.table[:, channels])
-        return self._tables[key]
-
-    def interpolate(self, points: np.ndarray, channels: slice = slice(None)) -> np.ndarray:
-        """Trilinear interpolation at points (..., 3) -> (..., C') float32."""
+    def interpolate(self, points: np.ndarray, table: np.ndarray | None = None) -> np.ndarray:
+        """Trilinear interpolation at points (..., 3) of ``table`` (nodes, C) (default the grid's own) -> (..., C) float32."""
+        table = self.table if table is None else table
         p = np.asarray(points, np.float32)
-        idx, w = self.cells(p)
-        table = self.table if channels == slice(None) else self._channel_table(channels)
-        rows = np.take(table, idx.ravel(), axis=0).reshape(idx.shape + (table.shape[1],))  # (N, 8, C')
+        _, idx, w = self.cells(p)
+        rows = np.take(table, idx.ravel(), axis=0).reshape(idx.shape + (table.shape[1],))
         out = np.einsum("nc,ncd->nd", w, rows, optimize=True)
-        return out.reshape(p.shape[:-1] + (out.shape[-1],))
+        return out.reshape(p.shape[:-1] + (table.shape[1],))
+
+
+class BandGrid:
+    """A fine grid whose nodes exist only on a band (``fine_nodes``: flat ids), over a coarse grid
+    with every node, sharing one origin; tables are (n_fine, C) and (n_coarse, C). A point
+    interpolates the fine cell holding it; a corner outside the band takes the coarse grid's
+    trilinear value at that corner (continuous across the band's edge)."""
+
+    def __init__(self, origin: np.ndarray, fine_spacing: float, fine_dims: np.ndarray, fine_nodes: np.ndarray,
+                 coarse_spacing: float, coarse_dims: np.ndarray):
+        origin = np.asarray(origin, np.float32)
+        self.fine = Grid(origin, fine_spacing, fine_dims)
+        self.coarse = Grid(origin, coarse_spacing, coarse_dims)
+        self.row = np.full(int(np.prod(self.fine.dims)), -1, np.int32)  # fine flat id -> band row, -1 off the band
+        self.row[np.asarray(fine_nodes, np.int64)] = np.arange(len(fine_nodes), dtype=np.int32)
+        self.fine_count = len(fine_nodes)
+        self.coarse_count = int(np.prod(self.coarse.dims))
+
+    def _block(self, p: np.ndarray, fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+        i0, idx, w = self.fine.cells(p)
+        rows = self.row[idx]  # (N, 8)
+        vals = np.take(fine, np.maximum(rows, 0).ravel(), axis=0).reshape(rows.shape + (fine.shape[1],))
+        off = rows < 0
+        if off.any():
+            n, c = np.nonzero(off)
+            corner = self.fine.origin + self.fine.spacing * (i0[n] + CORNERS[c]).astype(np.float32)
+            vals[n, c] = self.coarse.interpolate(corner, coarse)
+        return np.einsum("nc,ncd->nd", w, vals, optimize=True)
+
+    def interpolate(self, points: np.ndarray, fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+        """The fields of ``fine`` (n_fine, C) and ``coarse`` (n_coarse, C) at points (..., 3) -> (..., C) float32."""
+        p = np.asarray(points, np.float32)
+        flat = p.reshape(-1, 3)
+        out = np.empty((len(flat), fine.shape[1]), np.float32)
+        for a in range(0, len(flat), POINT_BLOCK):
+            out[a:a + POINT_BLOCK] = self._block(flat[a:a + POINT_BLOCK], fine, coarse)
+        return out.reshape(p.shape[:-1] + (fine.shape[1],))
+
+
+class Kernel:
+    """One level's diffusion kernels: skin vertex ids (n, K) and weights (n, K), rows summing to 1,
+    held as a sparse (n, V) matrix."""
+
+    def __init__(self, index: np.ndarray, weight: np.ndarray, num_vertices: int):
+        n, k = index.shape
+        self.matrix = scipy.sparse.csr_matrix((np.asarray(weight, np.float32).ravel(), np.asarray(index, np.int64).ravel(),
+                                               np.arange(0, n * k + 1, k)), shape=(n, num_vertices))
+
+    def contract(self, values: np.ndarray) -> np.ndarray:
+        """sum_j c_j values[k_j]: values (V, C) -> (n, C) float32."""
+        return np.asarray(self.matrix @ np.asarray(values, np.float32), np.float32)
 
 
 @dataclass(frozen=True)
-class DiffusedSample:
-    """The diffused fields at points (..., 3): weights (..., J) rows summing to 1, shape basis
-    (..., r, 3) metres per unit coefficient, sdf (...) metres (negative inside the canonical body)."""
+class BodyOffsets:
+    """B~s(., beta) of one body at both levels' nodes: fine (n_fine, 3), coarse (n_coarse, 3), metres."""
 
-    weights: np.ndarray
-    shape_basis: np.ndarray
-    sdf: np.ndarray
+    fine: np.ndarray
+    coarse: np.ndarray
 
 
 class DiffusedBody:
-    """W~ and SDF on one grid, the shape basis U~_k on a coarser one; see the module docstring."""
+    """W~, SDF and B~s of the canonical body (module docstring)."""
 
-    def __init__(self, skin: Grid, shape: Grid, shape_map: np.ndarray, neutral_coeffs: np.ndarray, metadata: dict | None = None):
-        self.bones = skin.channels - 1
-        # the bones whose W~ is zero everywhere (fingers and toes, folded into hand and foot) are
-        # dropped from the table: the lookup reads the others and the SDF, bone_index maps them back
-        self.bone_index = np.flatnonzero(np.abs(skin.table[:, : self.bones]).max(0) > 0)
-        skin.table = np.ascontiguousarray(skin.table[:, np.append(self.bone_index, self.bones)])
-        self.skin_grid, self.shape_grid = skin, shape
-        self.shape_map = np.asarray(shape_map, np.float32)
-        self.neutral_coeffs = np.asarray(neutral_coeffs, np.float64)
-        self.components = self.shape_map.shape[1]
-        if shape.channels != 3 * self.components:
-            raise InputShapeError("shape_fields", f"(mx, my, mz, {3 * self.components})", tuple(shape.dims) + (shape.channels,))
+    def __init__(self, arrays: dict[str, np.ndarray], metadata: dict | None = None):
+        a = arrays
+        self.grid = BandGrid(a["origin"], float(a["fine_spacing"]), a["fine_dims"], a["fine_nodes"],
+                             float(a["coarse_spacing"]), a["coarse_dims"])
+        self.neutral_vertices = np.asarray(a["neutral_vertices"], np.float32)
+        self.kernels = {lvl: Kernel(a[f"{lvl}_index"], a[f"{lvl}_weight"], len(self.neutral_vertices)) for lvl in ("fine", "coarse")}
+        weights = np.asarray(a["vertex_weights"], np.float32)
+        self.bones = weights.shape[1]
+        # bones with no weight anywhere (fingers and toes, folded into hand and foot) are left out
+        # of the tables; bone_index maps the kept ones back
+        self.bone_index = np.flatnonzero(weights.max(0) > 0)
+        # skin tables: W~ over the kept bones, then the SDF, as one gather
+        self.skin = {lvl: np.ascontiguousarray(np.concatenate([k.contract(weights[:, self.bone_index]),
+                                                               np.asarray(a[f"{lvl}_sdf"], np.float32)[:, None]], 1))
+                     for lvl, k in self.kernels.items()}
+        self.sdf_tables = {lvl: np.ascontiguousarray(t[:, -1:]) for lvl, t in self.skin.items()}
         self.metadata = metadata or {}
+        self._offsets: OrderedDict[bytes, BodyOffsets] = OrderedDict()
 
     @classmethod
     def load(cls, path: Path | str = DEFAULT_PATH) -> "DiffusedBody":
         with np.load(path, allow_pickle=False) as f:
-            return cls(Grid(f["origin"], float(f["spacing"]), f["fields"]), Grid(f["origin"], float(f["shape_spacing"]), f["shape_fields"]),
-                       f["shape_map"], f["neutral_coeffs"], json.loads(str(f["metadata"])))
+            arrays = {k: f[k] for k in f.files if k != "metadata"}
+            metadata = json.loads(str(f["metadata"])) if "metadata" in f.files else {}
+        return cls(arrays, metadata)
+
+    # ------------------------------------------------------------------ fields
+    def _skin(self, points: np.ndarray) -> np.ndarray:
+        """W~ over the kept bones and the SDF at points (..., 3) -> (..., K + 1), one gather."""
+        return self.grid.interpolate(points, self.skin["fine"], self.skin["coarse"])
 
     def _full_weights(self, w: np.ndarray) -> np.ndarray:
-        """Clamped, normalised rows of the kept bones (..., K) -> (..., J)."""
+        """Clamped, normalised rows over the kept bones (..., K) -> (..., J)."""
         w = np.maximum(w, 0.0)
         w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
         out = np.zeros(w.shape[:-1] + (self.bones,), np.float32)
@@ -128,55 +199,44 @@ class DiffusedBody:
 
     def weights(self, points: np.ndarray) -> np.ndarray:
         """W~(p) (eq. 6.4): (..., 3) -> (..., J) float32, non-negative rows summing to 1."""
-        return self._full_weights(self.skin_grid.interpolate(points)[..., :-1])
+        return self._full_weights(self._skin(points)[..., :-1])
 
     def sdf(self, points: np.ndarray) -> np.ndarray:
         """Signed distance to the canonical skin (metres, negative inside): (..., 3) -> (...)."""
-        return self.skin_grid.interpolate(points, slice(-1, None))[..., 0]
+        return self.grid.interpolate(points, self.sdf_tables["fine"], self.sdf_tables["coarse"])[..., 0]
 
-    def sample(self, points: np.ndarray) -> DiffusedSample:
-        """W~, U~ and SDF at points (..., 3)."""
-        skin = self.skin_grid.interpolate(points)
-        w = self._full_weights(skin[..., :-1])
-        basis = self.shape_grid.interpolate(points)
-        return DiffusedSample(weights=w, shape_basis=basis.reshape(basis.shape[:-1] + (self.components, 3)), sdf=skin[..., -1])
+    def offsets(self, rest_vertices: np.ndarray) -> BodyOffsets:
+        """B~s(., beta) at the nodes for a body with rest vertices (V, 3) (``BodyShape.rest_vertices[0]``),
+        contracted once per body (the last ``OFFSET_CACHE`` bodies are kept)."""
+        v = np.asarray(rest_vertices, np.float32)
+        if v.shape != self.neutral_vertices.shape:
+            raise InputShapeError("rest_vertices", str(self.neutral_vertices.shape), v.shape)
+        key = v.tobytes()
+        if key in self._offsets:
+            self._offsets.move_to_end(key)
+            return self._offsets[key]
+        delta = v - self.neutral_vertices
+        out = BodyOffsets(*(self.kernels[lvl].contract(delta) for lvl in ("fine", "coarse")))
+        self._offsets[key] = out
+        while len(self._offsets) > OFFSET_CACHE:
+            self._offsets.popitem(last=False)
+        return out
 
-    def shape_coefficients(self, body_coeffs: np.ndarray) -> np.ndarray:
-        """a(beta) = (c(beta) - c_n) A: (B, 135) blendshape coefficients -> (B, r) float32."""
-        c = np.asarray(body_coeffs, np.float64)
-        return ((c - self.neutral_coeffs) @ self.shape_map.astype(np.float64)).astype(np.float32)
+    def shape_offsets(self, points: np.ndarray, offsets: BodyOffsets) -> np.ndarray:
+        """B~s(p, beta) (eq. 6.5) at points (..., 3) -> (..., 3) metres."""
+        return self.grid.interpolate(points, offsets.fine, offsets.coarse)
 
-    def shape_offsets(self, points: np.ndarray, body_coeffs: np.ndarray) -> np.ndarray:
-        """B~s(p, beta) (eq. 6.5): points (B, V, 3), body_coeffs (B, 135) -> offsets (B, V, 3) metres."""
-        basis = self.shape_grid.interpolate(points)  # (B, V, 3r)
-        basis = basis.reshape(basis.shape[:-1] + (self.components, 3))
-        return np.einsum("bvkc,bk->bvc", basis, self.shape_coefficients(body_coeffs), optimize=True)
-
-    def deshaped_to_shaped(self, X: np.ndarray, body_coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """T_G(X, beta) = X + B~s(X, beta) (eq. 6.8) and W~(X) (eq. 6.4).
-
-        X : (B, V, 3) canonical garment ; body_coeffs : (B, 135) the bodies' blendshape coefficients
-        returns the shaped rest garment (B, V, 3) float32 metres and its weights (B, V, J) float32
-        """
+    def deshaped_to_shaped(self, X: np.ndarray, offsets: BodyOffsets) -> np.ndarray:
+        """T_G(X, beta) = X + B~s(X, beta) (eq. 6.8): (..., 3) -> (..., 3) float32 metres."""
         X = np.asarray(X, np.float32)
-        if X.ndim != 3 or X.shape[-1] != 3:
-            raise InputShapeError("X", "(B, V, 3)", X.shape)
-        return X + self.shape_offsets(X, body_coeffs), self.weights(X)
+        return X + self.shape_offsets(X, offsets)
 
-    def offset_grid(self, body_coeffs: np.ndarray) -> Grid:
-        """B~s(., beta) of one body as a 3-channel grid: the basis contracted with a(beta) once
-        per body, sum_k a_k U~_k(node), so a lookup reads 3 channels instead of 3 r.
-        body_coeffs : (135,) or (1, 135)."""
-        a = self.shape_coefficients(np.asarray(body_coeffs, np.float64).reshape(1, -1))[0]
-        table = self.shape_grid.table.reshape(len(self.shape_grid.table), self.components, 3)
-        fields = np.einsum("nkc,k->nc", table, a, optimize=True).reshape(tuple(self.shape_grid.dims) + (3,))
-        return Grid(self.shape_grid.origin, self.shape_grid.spacing, fields)
-
-    def pose(self, X: np.ndarray, offsets: Grid, transforms: np.ndarray) -> np.ndarray:
+    # ------------------------------------------------------------------ eq. 6.7
+    def pose(self, X: np.ndarray, offsets: BodyOffsets, transforms: np.ndarray) -> np.ndarray:
         """M_G(X, beta, theta) (eq. 6.7) with W~ and B~s at each frame's own canonical points.
 
         X          : (T, V, 3) canonical garment per frame, metres
-        offsets    : ``offset_grid(beta)``
+        offsets    : ``offsets(rest_vertices)`` of the body
         transforms : (T, J, 4, 4) the body's skinning transforms per frame
         returns      (T, V, 3) float32 posed garment
         """
@@ -185,30 +245,9 @@ class DiffusedBody:
             raise InputShapeError("X", "(T, V, 3)", X.shape)
         if transforms.shape != (len(X), self.bones, 4, 4):
             raise InputShapeError("transforms", f"({len(X)}, {self.bones}, 4, 4)", transforms.shape)
-        w = np.maximum(self.skin_grid.interpolate(X, slice(0, -1)), 0.0)  # (T, V, K) over the kept bones
+        w = np.maximum(self._skin(X)[..., :-1], 0.0)  # (T, V, K) over the kept bones
         w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
-        shaped = X + offsets.interpolate(X)
+        shaped = X + self.shape_offsets(X, offsets)
         A = np.matmul(w, np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, V, 12)
         A = A.reshape(X.shape[:2] + (3, 4))
         return np.einsum("tvab,tvb->tva", A[..., :3], shaped, optimize=True) + A[..., 3]
-
-    def fields_at(self, points: np.ndarray, body_coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """W~ (V, J) and B~s(., beta) (V, 3) at one set of points (V, 3): the skinning attributes
-        of a request's garment frozen at one canonical shape (``pose_frozen``); the shape basis is
-        read at the points and contracted there (V x 3 r), not over the whole grid."""
-        p = np.asarray(points, np.float32)
-        a = self.shape_coefficients(np.asarray(body_coeffs, np.float64).reshape(1, -1))[0]
-        basis = self.shape_grid.interpolate(p).reshape(len(p), self.components, 3)
-        return self.weights(p), np.einsum("vkc,k->vc", basis, a, optimize=True)
-
-    def pose_frozen(self, X: np.ndarray, weights: np.ndarray, offsets: np.ndarray, transforms: np.ndarray) -> np.ndarray:
-        """eq. 6.7 with W~ and B~s frozen at one canonical shape X_bar (``fields_at(X_bar)``):
-        sum_j W~_j(X_bar) T_j (X_t + B~s(X_bar, beta)) for every frame t. Differs from ``pose``
-        by the change of the fields between X_bar and X_t (measured in docs/benchmarks.md).
-
-        X : (T, V, 3) ; weights : (V, J) ; offsets : (V, 3) ; transforms (T, J, 4, 4) -> (T, V, 3) float32
-        """
-        X = np.asarray(X, np.float32)
-        if X.ndim != 3 or X.shape[1:] != offsets.shape or weights.shape != (X.shape[1], self.bones):
-            raise InputShapeError("X", f"(T, {len(offsets)}, 3) with weights ({len(offsets)}, {self.bones})", X.shape)
-        return linear_blend_skinning((X + offsets)[None], weights, np.asarray(transforms, np.float32)[None])[0]

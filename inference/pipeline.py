@@ -7,6 +7,10 @@ function over batched float32 arrays. Each garment runs one fit and one dynamics
 learned ones are ``inference.learned``'s fit MLP R_G and wrinkle GRU R_L (ONNX, trained
 self-supervised with the SNUG losses):
 
+- fit 'canonical' : the garment's canonical form X (thesis ch. 6: unposed, deshaped), shaped by
+  the diffused body's offsets and skinned with its weights, both read at X (eq. 6.7-6.8,
+  ``inference.canonical``); collisions: the final exact stage alone (the guard's pushes are for
+  the garments in the posed space; a layered outfit keeps them, ch. 7 is not yet in)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
 - fit 'none'      : the neutral template, plain LBS
@@ -26,11 +30,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blend_skinning
+from inference.canonical import CanonicalModels, default_canonical
 from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, resolve_methods
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.learned import LearnedGarment, LearnedModels, default_models
+from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
 from inference.options import DrapeOptions
@@ -177,6 +182,7 @@ def drape(
     defaults: DefaultMethods | None = None,
     gamma: np.ndarray | None = None,
     wrinkle_state: Sequence[np.ndarray | None] | None = None,
+    canonical: CanonicalModels | None = None,
 ) -> DrapeResult:
     """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
     (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none');
@@ -188,7 +194,8 @@ def drape(
     ``gamma`` (1, T, F): the motion descriptor of these frames when they are a chunk of a longer
     motion (computed over the whole motion: its finite differences reach across the chunk's
     ends), and ``wrinkle_state`` each garment's GRU state after the previous chunk
-    (``DrapeResult.wrinkle_state``; see ``drape_chunks``)."""
+    (``DrapeResult.wrinkle_state``; see ``drape_chunks``); ``canonical`` the diffused body and
+    canonical garments (fit 'canonical'; default ``inference.canonical.default_canonical()``)."""
     timer = _Timer()
     if shape.rest_vertices.shape[0] != 1:
         raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
@@ -220,6 +227,12 @@ def drape(
             neutral = body.shape(NEUTRAL_PHENOTYPES[None])
         garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
 
+    if any(m.fit == "canonical" for m in methods):
+        canonical = canonical or default_canonical()
+        if any(m.fit == "canonical" and m.dynamics == "learned" for m in methods):
+            raise MissingModelError("/options/dynamics", "no garment ships a canonical-space regressor yet; "
+                                                         "use dynamics 'none' with fit 'canonical'")
+
     learned: list[LearnedGarment | None] = [None] * len(garments)
     if any(m.fit == "learned" or m.dynamics == "learned" for m in methods):
         models = models or default_models()
@@ -235,31 +248,42 @@ def drape(
             gamma = np.concatenate([motion_descriptor(motion.rotations[None, a:b], motion.translation[None, a:b], motion.fps)
                                     for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
 
-    unposed_fits, posed, states = [], [], []
+    unposed_fits, posed, states, weights = [], [], [], []
     for i, (g, m, lg) in enumerate(zip(garments, methods, learned)):
         with timer("fit"):
-            unposed = fit_garment(g, hm08, m.fit, shape.phenotypes, lg)
+            if m.fit == "canonical":
+                unposed, w = canonical.rest_fit(g, shape.rest_vertices[0])
+                unposed = unposed[None]
+            else:
+                unposed, w = fit_garment(g, hm08, m.fit, shape.phenotypes, lg), g.skin_weights
         with timer("dynamics"):
             h0 = wrinkle_state[i] if wrinkle_state is not None else None
             unposed_t, h_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments, h0)
             states.append(h_t)
         with timer("skin"):
-            posed.append(linear_blend_skinning(unposed_t, g.skin_weights, garment_transforms))
+            posed.append(linear_blend_skinning(unposed_t, w, garment_transforms))
         unposed_fits.append(unposed)
+        weights.append(w)
 
     if options.guard:
-        with timer("guard"):
-            # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
-            # against the neutral body, the pose its skinning transforms start from).
-            rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
-            plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
-                                     layer_weights=[g.skin_weights for g in garments], body_weights=body.dense_weights,
-                                     rings=options.guard_check)
-            posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
-        if options.guard_exact:
-            with timer("repair"):  # last: no garment vertex inside the body (exact winding number)
+        # the guard's pushes: every posed-space garment, and every layered outfit (its layer pushes)
+        if len(garments) > 1 or any(m.fit != "canonical" for m in methods):
+            with timer("guard"):
+                # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
+                # against the neutral body, the pose its skinning transforms start from).
+                rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
+                plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
+                                         layer_weights=weights, body_weights=body.dense_weights, rings=options.guard_check)
+                posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
+            skin = plans.skin
+        else:
+            skin = None
+        # last: no garment vertex inside the body (exact winding number); a lone canonical
+        # garment has this stage alone at every level but 'off'
+        if options.guard_exact or all(m.fit == "canonical" for m in methods):
+            with timer("repair"):
                 posed = repair_layers(posed, body_vertices, body.faces, [options.margin_m + i * options.layer_gap_m for i in range(len(posed))],
-                                      skin=plans.skin)[0]
+                                      skin=skin)[0]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0], method=m) for g, p, m in zip(garments, posed, methods)],

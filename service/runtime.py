@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
+    "canonical": "diffused-canonical-v1",  # fit 'canonical': the diffused body (assets/body/diffused.npz), thesis ch. 6
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)
@@ -53,12 +54,16 @@ def used_model_versions(options, methods: Mapping[str, Method]) -> dict[str, str
     """The versions of the models a request ran (its output metadata): body, arms, guard and
     repair from its options; fit and dynamics per garment id from ``methods``, the method each
     garment ran (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
-    fit = {"learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}
+    fit = {"canonical": MODEL_VERSIONS["canonical"], "learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}
     dynamics = {"learned": MODEL_VERSIONS["learned_dynamics"], "none": "none"}
+    # as inference.pipeline.drape: a lone canonical garment skips the guard's pushes and always
+    # has the final exact stage
+    canonical = all(m.fit == "canonical" for m in methods.values())
+    guard = len(methods) > 1 or not canonical
     return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none",
             "fit": {gid: fit[m.fit] for gid, m in methods.items()}, "dynamics": {gid: dynamics[m.dynamics] for gid, m in methods.items()},
-            "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard else "none",
-            "repair": MODEL_VERSIONS["repair"] if options.guard and options.guard_exact else "none"}
+            "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard and guard else "none",
+            "repair": MODEL_VERSIONS["repair"] if options.guard and (options.guard_exact or canonical) else "none"}
 
 
 @dataclass(frozen=True)
@@ -251,6 +256,8 @@ class Runtime:
         files = ["body/body.npz", "body/hm08_helpers.npz"]
         if isinstance(p.request.motion, ClipMotion):
             files.append(f"motions/{p.request.motion.clip}.npz")
+        if any(g.method.fit == "canonical" for g in result.garments):
+            files.append("body/diffused.npz")
         for g in result.garments:
             files.append(f"garments/{g.asset.id}/garment.npz")
             if g.method.fit == "learned":

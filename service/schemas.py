@@ -122,7 +122,7 @@ DRAPE_EXAMPLE = {
 class DefaultMethodResponse(BaseModel):
     """What a drape runs for this garment when its options name no fit or dynamics."""
 
-    fit: Literal["learned", "retarget"]
+    fit: Literal["canonical", "learned", "retarget"]
     dynamics: Literal["learned", "none"]
     reason: str = Field(description="why this method is the garment's default, in one sentence")
     evidence: str = Field(description="where the measurements behind it are")

@@ -43,10 +43,10 @@ import scipy.sparse as sp
 import torch
 from torch import nn
 
-from inference.diffused import DiffusedBody
+from inference.diffused import DEFAULT_PATH, DiffusedBody
 from training.datasets import graph_laplacian, harmonic_basis
 from training.models import OutputBasis
-from training.projection import TorchGrid
+from training.projection import TorchBandGrid
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +132,7 @@ class CanonicalSDF:
     """SDF of the canonical body from the diffused body's grid, differentiable (float32)."""
 
     def __init__(self, diffused: DiffusedBody):
-        g = diffused.skin_grid
-        self.grid = TorchGrid(g, g.table[:, -1:], dtype=torch.float32)
+        self.grid = TorchBandGrid(diffused.grid, diffused.sdf_tables["fine"], diffused.sdf_tables["coarse"], dtype=torch.float32)
 
     def __call__(self, X: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) -> (B, V) metres, negative inside."""
@@ -277,7 +276,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--garment", required=True)
     p.add_argument("--train", nargs="+", type=Path, required=True, help="canonical frames (training.projection outputs) of training clips")
     p.add_argument("--validation", nargs="*", type=Path, default=[], help="canonical frames of the validation clip (reported only)")
-    p.add_argument("--diffused", type=Path, default=Path("build/diffused/diffused.npz"))
+    p.add_argument("--diffused", type=Path, default=DEFAULT_PATH)
     p.add_argument("--out-dir", type=Path, default=Path("build/vae"))
     p.add_argument("--no-collision", action="store_true", help="leave eq. 6.16 out (ablation)")
     p.add_argument("--steps", type=int, nargs=2, default=None, metavar=("RECONSTRUCTION", "COLLISION"))

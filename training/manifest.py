@@ -16,6 +16,7 @@ from training.assets.anny_model import REPO_ROOT
 ASSETS = REPO_ROOT / "assets"
 # First matching prefix wins: asset path (relative to assets/) -> build command.
 BUILD_COMMANDS = [
+    ("body/diffused.npz", "python -m training.assets.build_diffused_body"),
     ("body/", "python -m training.assets.build_body"),
     ("garments/", "python -m training.assets.build_garments"),
     ("motions/", "python -m training.assets.build_motions"),

@@ -32,43 +32,60 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from inference.diffused import DiffusedBody, Grid
+from inference.diffused import CORNERS, DEFAULT_PATH, BandGrid, DiffusedBody
 from training.physics import ClothGeometry, deformation_gradients
 
 
-class TorchGrid:
-    """``inference.diffused.Grid`` in torch: the same trilinear interpolation, clamped to the box,
-    differentiable in the points, by ``torch.nn.functional.grid_sample`` (align_corners: node i
-    of an axis of n nodes sits at -1 + 2 i / (n - 1); border padding is the clamp)."""
+class TorchBandGrid:
+    """``inference.diffused.BandGrid`` in torch: the same two-level trilinear interpolation
+    (the fine band's cell, a corner off the band read from the coarse grid), clamped to the
+    box, differentiable in the points (the tables are constants)."""
 
-    def __init__(self, grid: Grid, table: np.ndarray | None = None, dtype: torch.dtype = torch.float64):
-        table = np.asarray(grid.table if table is None else table, np.float64)
-        self.origin = torch.as_tensor(grid.origin, dtype=dtype)
-        self.spacing = grid.spacing
-        self.extent = torch.as_tensor((grid.dims - 1).astype(np.float64) * grid.spacing, dtype=dtype)
-        # (1, C, nx, ny, nz): grid_sample's (N, C, D, H, W), so a point's (x, y, z) is read as (W, H, D) = (z, y, x)
-        self.volume = torch.as_tensor(table.T.reshape(1, table.shape[1], *grid.dims), dtype=dtype).contiguous()
+    def __init__(self, grid: BandGrid, fine: np.ndarray, coarse: np.ndarray, dtype: torch.dtype = torch.float64):
+        self.origin = torch.as_tensor(grid.fine.origin, dtype=dtype)
+        self.levels = {name: (g.spacing, torch.as_tensor(g.dims), torch.as_tensor(g.strides)) for name, g in (("fine", grid.fine), ("coarse", grid.coarse))}
+        self.row = torch.as_tensor(grid.row.astype(np.int64))
+        self.fine = torch.as_tensor(np.asarray(fine), dtype=dtype)
+        self.coarse = torch.as_tensor(np.asarray(coarse), dtype=dtype)
+        self.corners = torch.as_tensor(CORNERS)
+
+    def _cells(self, points: torch.Tensor, level: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Lowest node (N, 3), corner flat ids (N, 8), trilinear weights (N, 8) (``Grid.cells``)."""
+        h, dims, strides = self.levels[level]
+        u = torch.minimum(torch.clamp((points - self.origin) / h, min=0.0), (dims - 1).to(points.dtype))
+        i0 = torch.minimum(u.detach().floor().long(), dims - 2)
+        t = u - i0
+        a = torch.stack([1.0 - t, t], 1)  # (N, 2, 3)
+        w = (a[:, :, None, None, 0] * a[:, None, :, None, 1] * a[:, None, None, :, 2]).reshape(len(u), 8)
+        return i0, (i0 @ strides)[:, None] + self.corners @ strides, w
+
+    def _coarse(self, points: torch.Tensor) -> torch.Tensor:
+        _, idx, w = self._cells(points, "coarse")
+        return (w[..., None] * self.coarse[idx]).sum(1)
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N, C)."""
-        g = 2.0 * (points - self.origin) / self.extent - 1.0
-        out = torch.nn.functional.grid_sample(self.volume, g.flip(-1).reshape(1, 1, 1, -1, 3), mode="bilinear",
-                                              padding_mode="border", align_corners=True)
-        return out.reshape(self.volume.shape[1], -1).T
+        i0, idx, w = self._cells(points, "fine")
+        rows = self.row[idx]
+        vals = self.fine[rows.clamp(min=0)]  # (N, 8, C), constants
+        off = rows < 0
+        if bool(off.any()):
+            n, c = torch.nonzero(off, as_tuple=True)
+            corner = self.origin + self.levels["fine"][0] * (i0[n] + self.corners[c]).to(points.dtype)
+            vals = vals.clone()
+            vals[n, c] = self._coarse(corner)
+        return (w[..., None] * vals).sum(1)
 
 
 class CanonicalBody:
-    """The diffused body's fields for one body shape beta, in torch (eq. 6.4-6.8).
+    """The diffused body's fields for one body shape beta, in torch (eq. 6.4-6.8): W~ and the
+    SDF from the diffused body's skin tables, B~s(., beta) from its offsets contracted for this
+    body (``DiffusedBody.offsets``)."""
 
-    The shape basis is contracted with the body's coefficients once, B~s(p, beta) =
-    sum_k a_k(beta) U~_k(p), so a lookup reads 3 channels instead of 3 r.
-    """
-
-    def __init__(self, diffused: DiffusedBody, body_coeffs: np.ndarray, dtype: torch.dtype = torch.float64):
-        a = diffused.shape_coefficients(np.asarray(body_coeffs)[None])[0].astype(np.float64)  # (r,)
-        table = diffused.shape_grid.table.astype(np.float64).reshape(-1, diffused.components, 3)
-        self.skin = TorchGrid(diffused.skin_grid, dtype=dtype)
-        self.offsets = TorchGrid(diffused.shape_grid, np.einsum("nkc,k->nc", table, a), dtype=dtype)
+    def __init__(self, diffused: DiffusedBody, rest_vertices: np.ndarray, dtype: torch.dtype = torch.float64):
+        offsets = diffused.offsets(rest_vertices)
+        self.skin = TorchBandGrid(diffused.grid, diffused.skin["fine"], diffused.skin["coarse"], dtype=dtype)
+        self.offsets = TorchBandGrid(diffused.grid, offsets.fine, offsets.coarse, dtype=dtype)
         self.bone_index = torch.as_tensor(diffused.bone_index)
 
     def fields(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -202,15 +219,15 @@ def summarise(reports: list[FrameReport]) -> dict:
 
 
 def reference_transforms(body, metadata: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Skinning transforms (T, J, 4, 4) of a reference simulation's frames and its body's
-    blendshape coefficients (135,), from its metadata (``training.reference.simulate_case``)."""
+    """Skinning transforms (T, J, 4, 4) of a reference simulation's frames and its body's rest
+    vertices (Vb, 3), from its metadata (``training.reference.simulate_case``)."""
     from training.protocol import BODIES, Case, case_motion
 
     case = Case(metadata["clip"], metadata["body"], int(metadata["start"]), int(metadata["frames"]))
     shape, motion, start = case_motion(body, case)
     window = slice(start, start + case.frames)
     _, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None, window], motion.translation[None, window])
-    return transforms[0], body.coefficients(np.asarray(BODIES[case.body], np.float32)[None])[0]
+    return transforms[0], shape.rest_vertices[0]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -224,8 +241,7 @@ def main(argv: list[str] | None = None) -> None:
 
     p = argparse.ArgumentParser(description="Project reference simulations into the canonical space (thesis eq. 6.9).")
     p.add_argument("references", nargs="+", type=Path, help="reference .npz files (training.reference)")
-    p.add_argument("--diffused", type=Path, default=Path("build/diffused/diffused.npz"),
-                   help="diffused body (python -m training.assets.build_diffused_body --out ...)")
+    p.add_argument("--diffused", type=Path, default=DEFAULT_PATH, help="diffused body (python -m training.assets.build_diffused_body)")
     p.add_argument("--out-dir", type=Path, default=Path("build/canonical"))
     p.add_argument("--frames", type=int, default=None, help="first frames only")
     p.add_argument("--w-strain", type=float, default=ProjectionSettings.w_strain)
@@ -242,8 +258,8 @@ def main(argv: list[str] | None = None) -> None:
             meta = json.loads(str(f["metadata"]))
             targets = f["vertices"][: args.frames]
         asset = catalog.get(meta["garment"])
-        transforms, coeffs = reference_transforms(body, meta)
-        projector = Projector(CanonicalBody(diffused, coeffs), ClothGeometry.from_asset(asset), settings)
+        transforms, rest = reference_transforms(body, meta)
+        projector = Projector(CanonicalBody(diffused, rest), ClothGeometry.from_asset(asset), settings)
         X, reports = projector.sequence(targets, transforms[: len(targets)], asset.vertices)
         report = {"reference": path.name, "settings": asdict(settings), **summarise(reports)}
         out = args.out_dir / path.name

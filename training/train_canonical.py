@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from inference.body import BodyModel
-from inference.diffused import DiffusedBody
+from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
 from inference.motion.descriptor import motion_descriptor
@@ -64,8 +64,8 @@ def project(reference: Path, out: Path, body: BodyModel, catalog: GarmentCatalog
         meta = json.loads(str(f["metadata"]))
         targets = f["vertices"]
     asset = catalog.get(meta["garment"])
-    transforms, coeffs = reference_transforms(body, meta)
-    projector = Projector(CanonicalBody(diffused, coeffs), ClothGeometry.from_asset(asset))
+    transforms, rest = reference_transforms(body, meta)
+    projector = Projector(CanonicalBody(diffused, rest), ClothGeometry.from_asset(asset))
     X, reports = projector.sequence(targets, transforms, asset.vertices)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, canonical=X, report=np.str_(json.dumps({"reference": reference.name, **summarise(reports)})))
@@ -79,7 +79,7 @@ def case_inputs(body: BodyModel, case: Case) -> dict:
     window = slice(start, start + case.frames)
     _, T = body.pose(shape.rest_bone_poses, motion.rotations[None, window], motion.translation[None, window])
     ph = np.asarray(BODIES[case.body], np.float32)
-    return {"phenotypes": ph, "gamma": gamma[window], "transforms": T[0], "coeffs": body.coefficients(ph[None])[0], "shape": shape}
+    return {"phenotypes": ph, "gamma": gamma[window], "transforms": T[0], "rest": shape.rest_vertices[0], "shape": shape}
 
 
 @torch.no_grad()
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="training simulations: a training clip and a body of training.protocol.BODIES each")
     p.add_argument("--start", type=int, default=30)
     p.add_argument("--frames", type=int, default=40)
-    p.add_argument("--diffused", type=Path, default=BUILD / "diffused" / "diffused.npz")
+    p.add_argument("--diffused", type=Path, default=DEFAULT_PATH)
     p.add_argument("--vae-steps", type=int, nargs=2, default=None)
     p.add_argument("--regressor-steps", type=int, default=RegressorConfig.steps)
     p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> None:
             inp = case_inputs(body, case)
             with np.load(ref, allow_pickle=False) as f:
                 target, body_frames = f["vertices"], f["body_vertices"]
-            canonical = CanonicalBody(diffused, inp["coeffs"])
+            canonical = CanonicalBody(diffused, inp["rest"])
             with torch.no_grad():
                 z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
                 X = vae.decoder(z[0]).numpy()
