@@ -70,7 +70,7 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     from training import judge
 
     row = judge.judge_case(judge.Inputs(body, catalog), SMOKE, "trousers", directory)
-    assert set(row["methods"]) == {"learned", "learned-fit", "retarget", "lbs"}
+    assert set(row["methods"]) == {"learned", "learned-fit", "retarget", "lbs", "canonical"}
     for m in row["methods"].values():
         assert np.isfinite(m["error_cm"]) and 0 <= m["error_cm"] < 10
         assert m["collisions_after"]["inside_pct_clean"] == 0.0
@@ -79,7 +79,7 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     ref_real = row["reference"]["realism"]
     assert ref_real["folded_pct"] < 5.0 and 0.5 < ref_real["edge_p1"] <= ref_real["edge_p99"] < 2.0
     fake = {**row, "methods": {k: dict(v) for k, v in row["methods"].items()}}
-    for name in ("learned", "learned-fit"):
+    for name in ("learned", "learned-fit", "canonical"):
         fake["methods"][name].update(error_cm=fake["methods"]["retarget"]["error_cm"] + 1.0, realism_failures=[])
     assert judge.select_defaults([fake])["trousers"]["fit"] == "retarget"
     fake["methods"]["lbs"]["error_cm"] = fake["methods"]["retarget"]["error_cm"] = 1.0
@@ -90,6 +90,9 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     fake["methods"]["learned"]["realism_failures"] = []
     chosen = judge.select_defaults([fake])["trousers"]
     assert (chosen["fit"], chosen["dynamics"]) == ("learned", "learned")
+    fake["methods"]["canonical"].update(error_cm=0.4)  # the canonical model is a candidate as well
+    chosen = judge.select_defaults([fake])["trousers"]
+    assert (chosen["fit"], chosen["dynamics"]) == ("canonical", "none")
     text = judge.markdown({"validation": [row]}, judge.select_defaults([row]), "test")
     assert "| trousers |" in text and "newton" in text
 

@@ -9,6 +9,8 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                arms lifted, as the service imports it):
                  learned  : retarget + fit regressor R_G + wrinkle GRU R_L (thesis eq. 4.2)
                  learned-fit : retarget + R_G, no dynamics (where the two models' errors come from)
+                 canonical : the garment's canonical form through the diffused body (thesis
+                           eq. 6.7-6.8, ``inference.canonical``), no dynamics
                  retarget : the .mhclo retarget fit, no dynamics
                  lbs      : the neutral template, plain LBS
                the learned dynamics run from the clip's frame 0; every method is compared on the
@@ -21,8 +23,8 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                strain and bending energy per frame (``training.physics``, SNUG eq. 5.8-5.10),
                diagnostics only; ms per garment-frame of the pipeline on this machine
 
-Selection (validation split only; ``select_defaults``): a garment's default is the learned
-candidate ('learned', else 'learned-fit') with the lowest mean error when its mean error over the
+Selection (validation split only; ``select_defaults``): a garment's default is the candidate
+('learned', 'learned-fit' or 'canonical', ``CANDIDATES``) with the lowest mean error when its mean error over the
 validation cases is below both baselines' means and it is not worse on realism on any of them;
 otherwise the retarget baseline (the plain LBS of the neutral template ignores the body shape, so
 it is a baseline, never a default). "Not worse on realism" is read against both anchors: a metric
@@ -63,6 +65,7 @@ METHODS: dict[str, DrapeOptions] = {
     "learned-fit": DrapeOptions(fit="learned", dynamics="none", lift_arms=False),
     "retarget": DrapeOptions(fit="retarget", dynamics="none", lift_arms=False),
     "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
+    "canonical": DrapeOptions(fit="canonical", dynamics="none", lift_arms=False),
 }
 REFERENCE = ReferenceSettings()
 # A companion simulation "slid" where its carried half is more than MOVED_M from the reference's
@@ -253,7 +256,7 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
     return row
 
 
-LEARNED_CANDIDATES = ("learned", "learned-fit")
+CANDIDATES = ("learned", "learned-fit", "canonical")
 BASELINES = ("retarget", "lbs")
 
 
@@ -279,7 +282,7 @@ def select_defaults(rows: list[dict], required_cases: int | None = None) -> dict
                                       f"more than {MAX_SLID_PCT:g} % of its carried half slid over {100 * SLID_M:g} cm off the body), so nothing is judged closer to physics"}
             continue
         verdicts = []
-        for cand in sorted((m for m in LEARNED_CANDIDATES if m in err), key=err.get):
+        for cand in sorted((m for m in CANDIDATES if m in err), key=err.get):
             closer = all(err[cand] < err[b] for b in BASELINES if b in err)
             fails = sorted({f for r in mine for f in r["methods"][cand]["realism_failures"]})
             if closer and not fails:
