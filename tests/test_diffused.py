@@ -151,6 +151,8 @@ def test_canonical_vae_learns_its_frames_and_its_decoder_exports_with_parity(bui
     template_error_mm = np.linalg.norm(frames - asset.vertices[None], axis=-1).mean() * 1e3
     assert m["train"]["mean_mm"] < 0.5 * template_error_mm, (m, template_error_mm)
     assert np.isfinite([row["rec"] for row in record["history"]]).all()
+    # eq. 6.16: decoded random latents stay out of the constant canonical body (issue 23: <= 0.1 %)
+    assert m["random"]["inside"] <= 1e-3, m["random"]
     exported = export_decoder(model, tmp_path / "decoder.onnx", metadata_record(record))
     assert exported["parity_max_abs_m"] <= 1e-4
     assert exported["outputs"]["canonical_vertices"] == ["B", len(asset.vertices), 3]

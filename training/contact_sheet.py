@@ -1,7 +1,7 @@
 """Contact sheets of draped garments, rendered headless (``training.render``), as small PNGs.
 
 Run:
-    python -m training.contact_sheet --garment tshirt [--method default|learned|retarget|lbs]
+    python -m training.contact_sheet --garment tshirt [--method default|learned|retarget|lbs|canonical]
         [--clip CLIP] [--frames 3] [--size 200x300] [--out docs/contact_sheets]
     python -m training.contact_sheet --garments tshirt,jacket          # a layered outfit, innermost first
     python -m training.contact_sheet --garment tshirt --vertices build/reference/tshirt_01_01.npz
@@ -19,7 +19,7 @@ from all training: ``01_01``), else ``walk``; ``--clip`` takes any bundled clip 
 
 Methods (``inference.pipeline.DrapeOptions``): default = ``DrapeOptions()`` as the service runs a
 request that names no method (the sheet's title says what each garment ran), learned = fit 'learned' + dynamics 'learned', retarget = fit 'retarget' + dynamics 'none',
-lbs = fit 'none' + dynamics 'none'. With dynamics the clip is draped from frame 0 up to the last
+lbs = fit 'none' + dynamics 'none', canonical = fit 'canonical' + dynamics 'none'. With dynamics the clip is draped from frame 0 up to the last
 moment shown (the wrinkle GRU's state builds up as at run time); without, each frame is
 independent and only the moments shown are draped (the arms are lifted over the whole clip first,
 as the pipeline would).
@@ -72,6 +72,7 @@ METHODS: dict[str, DrapeOptions] = {
     "learned": DrapeOptions(fit="learned", dynamics="learned"),
     "retarget": DrapeOptions(fit="retarget", dynamics="none"),
     "lbs": DrapeOptions(fit="none", dynamics="none"),
+    "canonical": DrapeOptions(fit="canonical", dynamics="none"),
 }
 VIEWS = ("front", "back")
 FIRST_FRACTION, LAST_FRACTION = 0.2, 0.8  # of the clip's frames, where the moments are taken
