@@ -8,7 +8,7 @@ kernels (once per body), W~ and B~s at the garment's canonical points (once per 
 static X), the skinning per frame, and the final exact stage; then eq. 6.7 with the fields read
 at every frame's own points (``DiffusedBody.pose``: what a per-frame canonical X costs, here X
 plus a 1 cm ripple per frame). With ``--model-dir`` (``training.train_canonical``'s output:
-regressor.onnx, decoder.onnx) also the regressor and the decoder.
+canonical_regressor.onnx, canonical_decoder.onnx) also the regressor and the decoder.
 Prints a markdown table: best-of-``--repeats`` ms per request and per garment-frame.
 """
 from __future__ import annotations
@@ -92,8 +92,8 @@ def main() -> None:
 
         so = ort.SessionOptions()
         so.intra_op_num_threads = so.inter_op_num_threads = 1
-        reg = ort.InferenceSession(str(args.model_dir / "regressor.onnx"), so, providers=["CPUExecutionProvider"])
-        dec = ort.InferenceSession(str(args.model_dir / "decoder.onnx"), so, providers=["CPUExecutionProvider"])
+        reg = ort.InferenceSession(str(args.model_dir / "canonical_regressor.onnx"), so, providers=["CPUExecutionProvider"])
+        dec = ort.InferenceSession(str(args.model_dir / "canonical_decoder.onnx"), so, providers=["CPUExecutionProvider"])
         inp = case_inputs(body, Case("02_02", "heavy", 30, T))
         h0 = np.zeros([dim if isinstance(dim, int) else 1 for dim in reg.get_inputs()[2].shape], np.float32)
         feeds = {"phenotypes": inp["phenotypes"][None], "gamma": inp["gamma"][None].astype(np.float32), "h0": h0}

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from inference.body import BodyModel, BodyShape
+from inference.canonical import CanonicalModels
 from inference.defaults import DefaultMethods, Method
 from inference.garment import GarmentAsset
 from inference.learned import LearnedModels
@@ -50,7 +51,7 @@ class DrapeJob:
 
 
 def drape_many(body: BodyModel, jobs: Sequence[DrapeJob], neutral: BodyShape | None = None, models: LearnedModels | None = None,
-               defaults: DefaultMethods | None = None) -> list[DrapeResult]:
+               defaults: DefaultMethods | None = None, canonical: CanonicalModels | None = None) -> list[DrapeResult]:
     """Every job's result, in order; jobs with the same ``batch_key`` go through one ``drape``
     call on their concatenated motions."""
     groups: dict[object, list[int]] = {}
@@ -62,7 +63,7 @@ def drape_many(body: BodyModel, jobs: Sequence[DrapeJob], neutral: BodyShape | N
         first = jobs[members[0]]
         motions = [jobs[i].motion for i in members]
         merged = drape(body, first.shape, merge_motions(motions), first.assets, first.options, neutral=neutral,
-                       segments=[m.num_frames for m in motions], defaults=defaults, models=models)
+                       segments=[m.num_frames for m in motions], defaults=defaults, models=models, canonical=canonical)
         for i, r in zip(members, split_result(merged, motions)):
             results[i] = r
     return results  # type: ignore[return-value]

@@ -11,22 +11,35 @@ body wherever the body's own deformation does not fold space onto itself (the ar
 crotch when the limbs close, the arms sunk into a heavy torso): there the final exact stage
 (``inference.repair``) moves the few vertices it must.
 
-X is the garment's template pushed out of the canonical body to ``margin_m`` (``push_out``: the
-templates are made collision-free on the neutral body, 4 mm - 13 cm from its skin, so this moves
-nothing on the shipped catalog; it guards a template added later).
+Two forms of X:
+
+- static (dynamics 'none'): the garment's template pushed out of the canonical body to its
+  margin (``push_out``: the templates are made collision-free on the neutral body, 4 mm - 13 cm
+  from its skin, so this moves nothing on the shipped catalog; it guards a template added later);
+  W~ and B~s are read once per request;
+- learned (dynamics 'learned', thesis ch. 6.4): X_t = D(R(beta, gamma_1..t)), the regressor R
+  into the latent of the garment's canonical VAE and its decoder D (``CanonicalGarment``: two
+  ONNX models, a whole sequence in one call each, the GRU state in and out), pushed out to the
+  margin; W~ and B~s are read at every frame's own points (eq. 6.7).
 
 Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
+import json
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 
 from inference.diffused import DEFAULT_PATH, DiffusedBody
-from inference.errors import InputShapeError
+from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
+from inference.learned import MODELS_DIR, MissingModelError, ort_session
+
+MODEL_FILE = "canonical.json"  # in assets/models/<garment>/, next to the ONNX files it names
 
 # Central-difference step of the SDF gradient, metres (well inside the fine grid's 15 mm cells).
 GRADIENT_STEP_M = 0.002
@@ -67,13 +80,65 @@ def push_out(diffused: DiffusedBody, X: np.ndarray, margin_m: float, steps: int 
     return X, int(moved.sum())
 
 
-class CanonicalModels:
-    """The diffused body and each garment's canonical form, loaded once, shared by every request."""
+@dataclass
+class CanonicalGarment:
+    """One garment's learned canonical model: the regressor R (phenotypes (B, 6), gamma (B, T, F),
+    h0 (L, B, H) -> z (B, T, latent), hT) and the VAE decoder D (z (N, latent) -> X (N, V, 3)).
 
-    def __init__(self, diffused_path: Path | str = DEFAULT_PATH):
+    meta : canonical.json (files, shapes, the training record)
+    """
+
+    garment_id: str
+    meta: dict
+    regressor: ort.InferenceSession
+    decoder: ort.InferenceSession
+
+    @classmethod
+    def load(cls, directory: Path | str, threads: int = 1) -> "CanonicalGarment":
+        directory = Path(directory)
+        meta = json.loads((directory / MODEL_FILE).read_text())
+        return cls(str(meta["garment"]), meta, ort_session(directory / meta["regressor"]["file"], threads),
+                   ort_session(directory / meta["decoder"]["file"], threads))
+
+    @property
+    def state_shape(self) -> tuple[int, int]:
+        """(L, H): GRU layers and hidden size; the state is (L, B, H)."""
+        L, _, H = self.meta["regressor"]["inputs"]["h0"]
+        return int(L), int(H)
+
+    def sequence(self, phenotypes: np.ndarray, gamma: np.ndarray, h0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """X_t = D(R(beta, gamma_1..t)) for one body: phenotypes (1, 6), gamma (1, T, F), h0 (L, 1, H)
+        or None (zeros: a motion's first frame) -> canonical frames (T, V, 3) float32 metres, hT."""
+        p = np.ascontiguousarray(phenotypes, np.float32)
+        g = np.ascontiguousarray(gamma, np.float32)
+        F = int(self.meta["regressor"]["inputs"]["gamma"][2])
+        if p.shape != (1, 6) or not np.isfinite(p).all():
+            raise InputShapeError("phenotypes", "(1, 6), finite", p.shape)
+        if g.ndim != 3 or g.shape[0] != 1 or g.shape[2] != F:
+            raise InputShapeError("gamma", f"(1, T, {F})", g.shape)
+        L, H = self.state_shape
+        h0 = np.zeros((L, 1, H), np.float32) if h0 is None else np.ascontiguousarray(h0, np.float32)
+        if h0.shape != (L, 1, H):
+            raise InputShapeError("h0", f"({L}, 1, {H})", h0.shape)
+        z, hT = self.regressor.run(None, {"phenotypes": p, "gamma": g, "h0": h0})
+        (X,) = self.decoder.run(None, {"z": z[0]})
+        if not np.isfinite(X).all():
+            raise InputValueError("motion", "the canonical model gave non-finite vertices for this motion")
+        return X, hT
+
+
+class CanonicalModels:
+    """The diffused body and each garment's canonical forms, loaded once, shared by every request:
+    the static one (every garment) and the learned one (garments whose ``models_dir/<id>/``
+    holds ``canonical.json``)."""
+
+    def __init__(self, diffused_path: Path | str = DEFAULT_PATH, models_dir: Path | str = MODELS_DIR, threads: int = 1):
         self.diffused_path = Path(diffused_path)
+        self.models_dir = Path(models_dir)
+        self.threads = threads
         self._diffused: DiffusedBody | None = None
         self._templates: dict[str, np.ndarray] = {}
+        self._learned: dict[str, CanonicalGarment] = {}
         self._lock = threading.Lock()
 
     @property
@@ -89,19 +154,65 @@ class CanonicalModels:
         diffused = self.diffused
         with self._lock:
             if garment.id not in self._templates:
-                margin = float(garment.material.get("collision_margin_m", 0.003))
-                self._templates[garment.id] = push_out(diffused, garment.template, margin)[0]
+                self._templates[garment.id] = push_out(diffused, garment.template, margin(garment))[0]
             return self._templates[garment.id]
 
     def rest_fit(self, garment: GarmentAsset, rest_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The garment shaped to a body in its rest pose, T_G(X, beta) = X + B~s(X, beta) (eq. 6.8),
-        (V, 3) float32, and its skinning weights W~(X) (V, J) (eq. 6.4), X the canonical form.
+        (V, 3) float32, and its skinning weights W~(X) (V, J) (eq. 6.4), X the static canonical form.
 
         rest_vertices : (Vb, 3) the body's rest vertices (``BodyShape.rest_vertices[0]``)
         """
         X = self.template(garment)
         d = self.diffused
         return d.deshaped_to_shaped(X, d.offsets(rest_vertices)), d.weights(X)
+
+    def available(self, garment_id: str) -> bool:
+        """Whether the garment ships a learned canonical model (without loading it)."""
+        return (self.models_dir / garment_id / MODEL_FILE).exists()
+
+    def learned(self, garment_id: str, field: str = "/options/dynamics") -> CanonicalGarment:
+        """The garment's learned canonical model; ``MissingModelError`` (naming ``field``) if none."""
+        with self._lock:
+            if garment_id not in self._learned:
+                if not self.available(garment_id):
+                    raise MissingModelError(field, f"garment {garment_id!r} has no learned canonical model "
+                                                   f"(assets/models/{garment_id}/{MODEL_FILE}); use dynamics 'none' with fit 'canonical'")
+                self._learned[garment_id] = CanonicalGarment.load(self.models_dir / garment_id, self.threads)
+            return self._learned[garment_id]
+
+    def load_all(self, garment_ids) -> list[str]:
+        """The diffused body, and every listed garment's learned model that ships (a service's
+        start-up: no request pays for it, a broken file stops the start); the ids loaded."""
+        _ = self.diffused
+        loaded = [g for g in garment_ids if self.available(g)]
+        for g in loaded:
+            self.learned(g)
+        return loaded
+
+    def frames(self, garment: GarmentAsset, phenotypes: np.ndarray, gamma: np.ndarray, segments: list[int],
+               h0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The learned canonical frames X_t (T, V, 3) of one body over motions concatenated along
+        T (``segments``: their frame counts; the GRU restarts from zeros at each, or from ``h0``
+        when there is one segment), pushed out of the canonical body to the garment's margin,
+        and the GRU state after the last frame."""
+        model = self.learned(garment.id)
+        if int(model.meta["vertices"]) != garment.num_vertices:
+            raise InputShapeError("canonical model", f"({garment.num_vertices} vertices)", (int(model.meta["vertices"]),))
+        if h0 is not None and len(segments) != 1:
+            raise InputShapeError("segments", "one segment when a GRU state is carried in", tuple(segments))
+        bounds = np.cumsum([0, *segments])
+        parts, hT = [], h0
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            X, hT = model.sequence(phenotypes, gamma[:, a:b], h0)
+            parts.append(X)
+        X = np.concatenate(parts)
+        return push_out(self.diffused, X, margin(garment))[0], hT
+
+
+def margin(garment: GarmentAsset) -> float:
+    """The garment's clearance from the canonical body, metres (its collision margin)."""
+    return float(garment.material.get("collision_margin_m", 0.003))
 
 
 _DEFAULT: CanonicalModels | None = None

@@ -32,7 +32,8 @@ class MissingModelError(UnknownAssetError):
     """A learned fit or dynamics mode was asked for a garment that ships no learned models."""
 
 
-def _session(path: Path, threads: int) -> ort.InferenceSession:
+def ort_session(path: Path, threads: int) -> ort.InferenceSession:
+    """A CPU onnxruntime session of ``threads`` intra-op threads, quiet logs."""
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
@@ -63,8 +64,8 @@ class LearnedGarment:
         return cls(
             garment_id=str(meta["garment"]),
             meta=meta,
-            fit_session=_session(directory / meta["fit"]["file"], threads),
-            wrinkle_session=_session(directory / meta["wrinkle"]["file"], threads),
+            fit_session=ort_session(directory / meta["fit"]["file"], threads),
+            wrinkle_session=ort_session(directory / meta["wrinkle"]["file"], threads),
         )
 
     @property

@@ -9,8 +9,10 @@ self-supervised with the SNUG losses):
 
 - fit 'canonical' : the garment's canonical form X (thesis ch. 6: unposed, deshaped), shaped by
   the diffused body's offsets and skinned with its weights, both read at X (eq. 6.7-6.8,
-  ``inference.canonical``); collisions: the final exact stage alone (the guard's pushes are for
-  the garments in the posed space; a layered outfit keeps them, ch. 7 is not yet in)
+  ``inference.canonical``); with dynamics 'none' X is the static template, with 'learned'
+  X_t = D(R(beta, gamma_1..t)) (ch. 6.4: the regressor into the canonical VAE's latent, and its
+  decoder). Collisions: the final exact stage alone (the guard's pushes are for garments in the
+  posed space; a layered outfit keeps them, ch. 7 is not yet in)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
 - fit 'none'      : the neutral template, plain LBS
@@ -35,7 +37,7 @@ from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, re
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
+from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
 from inference.options import DrapeOptions
@@ -227,18 +229,20 @@ def drape(
             neutral = body.shape(NEUTRAL_PHENOTYPES[None])
         garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
 
-    if any(m.fit == "canonical" for m in methods):
-        canonical = canonical or default_canonical()
-        if any(m.fit == "canonical" and m.dynamics == "learned" for m in methods):
-            raise MissingModelError("/options/dynamics", "no garment ships a canonical-space regressor yet; "
-                                                         "use dynamics 'none' with fit 'canonical'")
-
+    # the ch. 4 models (fit 'learned', or its wrinkle GRU) and the ch. 6 ones (fit 'canonical')
+    ch4 = [m.fit == "learned" or (m.dynamics == "learned" and m.fit != "canonical") for m in methods]
     learned: list[LearnedGarment | None] = [None] * len(garments)
-    if any(m.fit == "learned" or m.dynamics == "learned" for m in methods):
+    if any(ch4):
         models = models or default_models()
         with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
-            learned = [models.get(g.id, "/options/fit" if m.fit == "learned" else "/options/dynamics")
-                       if "learned" in (m.fit, m.dynamics) else None for g, m in zip(garments, methods)]
+            learned = [models.get(g.id, "/options/fit" if m.fit == "learned" else "/options/dynamics") if c else None
+                       for g, m, c in zip(garments, methods, ch4)]
+    if any(m.fit == "canonical" for m in methods):
+        canonical = canonical or default_canonical()
+        with timer("models"):  # raises MissingModelError for dynamics 'learned' where a garment ships none
+            for g, m in zip(garments, methods):
+                if m.fit == "canonical" and m.dynamics == "learned":
+                    canonical.learned(g.id)
     if gamma is not None:
         if gamma.shape[:2] != (1, motion.num_frames):
             raise InputShapeError("gamma", f"(1, {motion.num_frames}, F)", gamma.shape)
@@ -250,6 +254,21 @@ def drape(
 
     unposed_fits, posed, states, weights = [], [], [], []
     for i, (g, m, lg) in enumerate(zip(garments, methods, learned)):
+        h0 = wrinkle_state[i] if wrinkle_state is not None else None
+        if m.fit == "canonical" and m.dynamics == "learned":
+            d = canonical.diffused
+            with timer("dynamics"):  # X_t = D(R(beta, gamma_1..t)), pushed out of the canonical body
+                X, h_t = canonical.frames(g, shape.phenotypes, gamma, segments, h0)
+                states.append(h_t)
+            with timer("skin"):  # eq. 6.7 with W~ and B~s at every frame's own points
+                offsets = d.offsets(shape.rest_vertices[0])
+                posed.append(d.pose(X, offsets, transforms[0])[None])
+            if len(garments) > 1:  # the layer pushes plan on the sequence's mean canonical form
+                with timer("fit"):
+                    Xm = X.mean(0)
+                    unposed_fits.append(d.deshaped_to_shaped(Xm, offsets)[None])
+                    weights.append(d.weights(Xm))
+            continue
         with timer("fit"):
             if m.fit == "canonical":
                 unposed, w = canonical.rest_fit(g, shape.rest_vertices[0])
@@ -257,7 +276,6 @@ def drape(
             else:
                 unposed, w = fit_garment(g, hm08, m.fit, shape.phenotypes, lg), g.skin_weights
         with timer("dynamics"):
-            h0 = wrinkle_state[i] if wrinkle_state is not None else None
             unposed_t, h_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments, h0)
             states.append(h_t)
         with timer("skin"):
@@ -324,6 +342,7 @@ def drape_chunks(
     neutral: BodyShape | None = None,
     models: LearnedModels | None = None,
     defaults: DefaultMethods | None = None,
+    canonical: CanonicalModels | None = None,
 ) -> Iterator[tuple[int, DrapeResult]]:
     """``drape`` of one motion in chunks of ``chunk_frames`` frames, each yielded when done as
     (frames done so far, the chunk's result); concatenated, the chunks equal the drape of the
@@ -344,7 +363,7 @@ def drape_chunks(
     for a in range(0, motion.num_frames, chunk_frames):
         b = min(a + chunk_frames, motion.num_frames)
         part = PoseSequence(motion.rotations[a:b], motion.translation[a:b], motion.fps)
-        result = drape(body, shape, part, garments, options, neutral=neutral, models=models, defaults=defaults,
+        result = drape(body, shape, part, garments, options, neutral=neutral, models=models, defaults=defaults, canonical=canonical,
                        gamma=None if gamma is None else gamma[:, a:b], wrinkle_state=state)
         state = result.wrinkle_state
         yield b, result

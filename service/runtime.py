@@ -19,6 +19,8 @@ from typing import Callable
 from inference.asset_digest import AssetDigest
 from inference.batch import DrapeJob, concatenate_results, drape_many
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
+from inference.canonical import MODEL_FILE as CANONICAL_MODEL_FILE
+from inference.canonical import CanonicalModels
 from inference.defaults import DEFAULTS_FILE, DefaultMethods, Method, resolve_methods
 from inference.errors import InputValueError
 from inference.export import BodyTrack, GarmentTrack, write_glb, write_npz
@@ -40,6 +42,7 @@ MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
     "canonical": "diffused-canonical-v1",  # fit 'canonical': the diffused body (assets/body/diffused.npz), thesis ch. 6
+    "canonical_dynamics": "canonical-vae-gru-v1",  # fit 'canonical' + dynamics 'learned': regressor + VAE decoder (canonical.json)
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)
@@ -61,7 +64,9 @@ def used_model_versions(options, methods: Mapping[str, Method]) -> dict[str, str
     canonical = all(m.fit == "canonical" for m in methods.values())
     guard = len(methods) > 1 or not canonical
     return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none",
-            "fit": {gid: fit[m.fit] for gid, m in methods.items()}, "dynamics": {gid: dynamics[m.dynamics] for gid, m in methods.items()},
+            "fit": {gid: fit[m.fit] for gid, m in methods.items()},
+            "dynamics": {gid: MODEL_VERSIONS["canonical_dynamics"] if (m.fit, m.dynamics) == ("canonical", "learned") else dynamics[m.dynamics]
+                         for gid, m in methods.items()},
             "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard and guard else "none",
             "repair": MODEL_VERSIONS["repair"] if options.guard and (options.guard_exact or canonical) else "none"}
 
@@ -112,13 +117,15 @@ class PreparedDrape:
 
 class Runtime:
     def __init__(self, settings: Settings, body: BodyModel, catalog: GarmentCatalog, clips: ClipLibrary, defaults: DefaultMethods,
-                 models: LearnedModels | None = None, assets: AssetDigest | None = None):
+                 models: LearnedModels | None = None, assets: AssetDigest | None = None, canonical: CanonicalModels | None = None):
         self.settings = settings
         self.body = body
         self.catalog = catalog
         self.clips = clips
         self.defaults = defaults  # each garment's default method (assets/models/defaults.json)
         self.models = models or LearnedModels(settings.assets_dir / "models")
+        # the diffused body and the canonical models of fit 'canonical' (thesis ch. 6)
+        self.canonical = canonical or CanonicalModels(settings.assets_dir / "body" / "diffused.npz", settings.assets_dir / "models")
         self.assets = assets or AssetDigest.of(settings.assets_dir)  # content versions: cache keys, ETags, metadata
         self.neutral_shape: BodyShape = body.shape(NEUTRAL_PHENOTYPES[None])
         self.motions = MotionImporter(body, clips)
@@ -144,7 +151,10 @@ class Runtime:
         clips = ClipLibrary(settings.assets_dir)
         models = LearnedModels(settings.assets_dir / "models")
         loaded = models.load_all(catalog.ids()) if learned else []  # no request waits for a session; a broken file stops the start
-        runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir))
+        canonical = CanonicalModels(settings.assets_dir / "body" / "diffused.npz", settings.assets_dir / "models")
+        if learned:
+            loaded += [f"{g} (canonical)" for g in canonical.load_all(catalog.ids())]
+        runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
         log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",
                  runtime.assets.combined[:16])
         return runtime
@@ -207,7 +217,7 @@ class Runtime:
         """Run the pipeline for several prepared requests (``inference.batch.drape_many``: those
         with the same body, garments, resolved methods and options share one call)."""
         jobs = [DrapeJob(p.shape, p.motion, p.assets, p.options, p.methods) for p in prepared]
-        return drape_many(self.body, jobs, neutral=self.neutral_shape, models=self.models, defaults=self.defaults)
+        return drape_many(self.body, jobs, neutral=self.neutral_shape, models=self.models, defaults=self.defaults, canonical=self.canonical)
 
     def export(self, p: PreparedDrape, result: DrapeResult) -> DrapeOutput:
         """Encode one request's result as glb or npz."""
@@ -262,7 +272,10 @@ class Runtime:
             files.append(f"garments/{g.asset.id}/garment.npz")
             if g.method.fit == "learned":
                 files.append(f"models/{g.asset.id}/{self.models.get(g.asset.id).meta['fit']['file']}")
-            if g.method.dynamics == "learned":
+            if g.method.dynamics == "learned" and g.method.fit == "canonical":
+                meta = self.canonical.learned(g.asset.id).meta
+                files += [f"models/{g.asset.id}/{f}" for f in (CANONICAL_MODEL_FILE, meta["regressor"]["file"], meta["decoder"]["file"])]
+            elif g.method.dynamics == "learned":
                 files.append(f"models/{g.asset.id}/{self.models.get(g.asset.id).meta['wrinkle']['file']}")
         return {f: self.assets.short(f) for f in files}
 
@@ -310,7 +323,7 @@ class Runtime:
             return None
         parts = []
         for done, part in drape_chunks(self.body, p.shape, p.motion, p.assets, p.options, self.settings.job_chunk_frames,
-                                       neutral=self.neutral_shape, models=self.models, defaults=self.defaults):
+                                       neutral=self.neutral_shape, models=self.models, defaults=self.defaults, canonical=self.canonical):
             parts.append(part)
             if progress is not None and progress(done, total):
                 return None

@@ -70,10 +70,77 @@ def test_a_lone_canonical_garment_runs_the_exact_stage_alone_and_ends_outside_th
     assert moved.mean() < 0.05
 
 
-def test_canonical_with_learned_dynamics_is_refused_naming_the_field(setup):
-    body, catalog, canonical = setup
+def test_canonical_with_learned_dynamics_needs_a_learned_canonical_model(setup, tmp_path):
+    body, catalog, _ = setup
     clip = ClipLibrary().load("walk")
     motion = PoseSequence(clip.rotations[:2], clip.translation[:2], clip.fps)
+    canonical = CanonicalModels(models_dir=tmp_path)  # no garment ships one here
     with pytest.raises(UnknownAssetError) as e:
         drape(body, body.shape(HEAVY), motion, [catalog.get("tshirt")], DrapeOptions(fit="canonical", dynamics="learned"), canonical=canonical)
     assert e.value.field == "/options/dynamics"
+
+
+@pytest.fixture(scope="module")
+def learned_dir(setup, tmp_path_factory):
+    """A small canonical model of the T-shirt, trained here (VAE of eq. 6.13-6.16 on canonical
+    frames that breathe out with the walk's phase, regressor of eq. 6.17-6.18 onto their
+    encodings) and written as the runtime reads it (``train_canonical.write_model_json``)."""
+    torch = pytest.importorskip("torch")
+    from inference.motion.descriptor import motion_descriptor
+    from training.canonical_regressor import RegressorConfig, export_regressor, train_regressor
+    from training.canonical_vae import VAEConfig, export_decoder, metadata_record, train_vae
+    from training.train_canonical import write_model_json
+
+    body, catalog, canonical = setup
+    asset = catalog.get("tshirt")
+    clip = ClipLibrary().load("walk")
+    gamma = motion_descriptor(clip.rotations[None, :24], clip.translation[None, :24], clip.fps)[0]
+    n = vertex_normals(asset.vertices[None], asset.faces)[0]
+    amp = (0.006 * (1.0 + np.sin(np.arange(24) * 0.5)))[:, None, None].astype(np.float32)
+    frames = (asset.vertices[None] + amp * n[None]).astype(np.float32)
+    vae, vae_record = train_vae(frames, asset.vertices, asset.faces, asset.edges, canonical.diffused,
+                                VAEConfig(latent=4, basis=16, hidden=32, batch=4, random_batch=2, steps_reconstruction=60, steps_collision=20))
+    with torch.no_grad():
+        z = vae.encode(torch.as_tensor(frames))[0].numpy()
+    seqs = [{"phenotypes": p, "gamma": gamma, "z": z} for p in (HEAVY[0], np.full(6, 0.5, np.float32))]
+    reg, reg_record = train_regressor(seqs, 4, RegressorConfig(hidden=16, layers=2, steps=80, window=24, batch=2))
+    out = tmp_path_factory.mktemp("models") / "tshirt"
+    out.mkdir()
+    vae_record["export"] = export_decoder(vae, out / "canonical_decoder.onnx", metadata_record(vae_record))
+    reg_record["export"] = export_regressor(reg, out / "canonical_regressor.onnx")
+    write_model_json(out, asset, vae_record, reg_record, ["synthetic"])
+    return out.parent
+
+
+def test_learned_canonical_frames_are_decoded_per_frame_and_end_outside_the_body(setup, learned_dir):
+    from inference.pipeline import drape_chunks
+
+    body, catalog, _ = setup
+    canonical = CanonicalModels(models_dir=learned_dir)
+    assert canonical.available("tshirt") and not canonical.available("jacket")
+    clip = ClipLibrary().load("walk")
+    motion = PoseSequence(clip.rotations[:8], clip.translation[:8], clip.fps)
+    shape = body.shape(HEAVY)
+    options = DrapeOptions(fit="canonical", dynamics="learned", lift_arms=False)
+    r = drape(body, shape, motion, [catalog.get("tshirt")], options, canonical=canonical)
+    v = r.garments[0].vertices
+    assert v.shape == (8, catalog.get("tshirt").num_vertices, 3) and np.isfinite(v).all()
+    assert not inside_mask(v, r.body_vertices, body.faces).any()
+    # the canonical form changes from frame to frame (the decoded X_t, not a fixed template)
+    X, _ = canonical.frames(catalog.get("tshirt"), shape.phenotypes, r_gamma(motion), [8])
+    assert np.linalg.norm(X[1:] - X[:-1], axis=-1).max() > 1e-4
+    assert canonical.diffused.sdf(X).min() > 0.003 - 5e-4  # pushed out to the garment's margin
+    # in chunks, the regressor's state carried: the same frames
+    parts = [p.garments[0].vertices for _, p in drape_chunks(body, shape, motion, [catalog.get("tshirt")], options, chunk_frames=3,
+                                                            canonical=canonical)]
+    np.testing.assert_allclose(np.concatenate(parts), v, atol=1e-4)
+    # a garment without a learned canonical model is refused, naming the field
+    with pytest.raises(UnknownAssetError) as e:
+        drape(body, shape, motion, [catalog.get("jacket")], options, canonical=canonical)
+    assert e.value.field == "/options/dynamics"
+
+
+def r_gamma(motion: PoseSequence) -> np.ndarray:
+    from inference.motion.descriptor import motion_descriptor
+
+    return motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)

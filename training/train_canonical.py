@@ -15,8 +15,10 @@ Steps (each cached under ``build/``):
    moves; the same for the template through eq. 6.7 (the diffused skinning alone), and the
    judge's cached baseline rows for comparison.
 
-Writes ``build/canonical_model/<garment>/``: ``vae.pt``, ``decoder.onnx``, ``regressor.pt``,
-``report.json``.
+Writes ``build/canonical_model/<garment>/``: ``vae.pt``, ``regressor.pt``, ``report.json`` and the
+runtime's files (``inference.canonical.CanonicalGarment``): ``canonical.json``,
+``canonical_decoder.onnx``, ``canonical_regressor.onnx``; ``--install`` copies those three into
+``assets/models/<garment>/`` (then ``python -m training.manifest``).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ import numpy as np
 import torch
 
 from inference.body import BodyModel
+from inference.canonical import MODEL_FILE
 from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
@@ -70,6 +73,29 @@ def project(reference: Path, out: Path, body: BodyModel, catalog: GarmentCatalog
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, canonical=X, report=np.str_(json.dumps({"reference": reference.name, **summarise(reports)})))
     return out
+
+
+def write_model_json(out: Path, asset, vae_record: dict, reg_record: dict, train_cases: list[str]) -> Path:
+    """``canonical.json`` of ``inference.canonical.CanonicalGarment``: the ONNX files with their
+    shapes and hashes, and what they were trained on."""
+    meta = {"garment": asset.id, "vertices": int(asset.num_vertices), "method": "thesis ch. 6: regressor -> VAE latent -> decoder",
+            "regressor": reg_record["export"], "decoder": vae_record["export"], "train_cases": train_cases,
+            "training": {"vae": {k: vae_record[k] for k in ("config", "train_wall_s", "frames", "collision") if k in vae_record},
+                         "regressor": {k: reg_record[k] for k in ("config", "train_wall_s", "sequences") if k in reg_record}}}
+    path = out / MODEL_FILE
+    path.write_text(json.dumps(meta, indent=1))
+    return path
+
+
+def install(out: Path, target: Path) -> None:
+    """Copy ``canonical.json`` and the two ONNX files it names from ``out`` into ``target``."""
+    import shutil
+
+    meta = json.loads((out / MODEL_FILE).read_text())
+    target.mkdir(parents=True, exist_ok=True)
+    for name in (MODEL_FILE, meta["regressor"]["file"], meta["decoder"]["file"]):
+        shutil.copy2(out / name, target / name)
+    log.info("installed %s into %s", meta["garment"], target)
 
 
 def case_inputs(body: BodyModel, case: Case) -> dict:
@@ -132,6 +158,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--vae-steps", type=int, nargs=2, default=None)
     p.add_argument("--regressor-steps", type=int, default=RegressorConfig.steps)
     p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
+    p.add_argument("--install", action="store_true", help="copy the runtime's files into assets/models/<garment>/")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     pairs = [c.split(":") for c in args.cases]
@@ -166,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
     out = OUT_DIR / (args.garment + ("_nocol" if args.no_collision else ""))
     out.mkdir(parents=True, exist_ok=True)
     torch.save(vae.state_dict(), out / "vae.pt")
-    vae_record["export"] = export_decoder(vae, out / "decoder.onnx", metadata_record(vae_record))
+    vae_record["export"] = export_decoder(vae, out / "canonical_decoder.onnx", metadata_record(vae_record))
 
     # 4: regressor on the VAE's encodings of the training frames
     with torch.no_grad():
@@ -174,7 +201,8 @@ def main(argv: list[str] | None = None) -> None:
             s["z"] = vae.encode(torch.as_tensor(load_canonical([path])))[0].numpy()
     reg, reg_record = train_regressor(sequences, vae.config.latent, RegressorConfig(steps=args.regressor_steps))
     torch.save(reg.state_dict(), out / "regressor.pt")
-    reg_record["export"] = export_regressor(reg, out / "regressor.onnx")
+    reg_record["export"] = export_regressor(reg, out / "canonical_regressor.onnx")
+    write_model_json(out, asset, vae_record, reg_record, [c.name for c in train_cases])
 
     # 5: scores against newton: validation (where choices are made) and test (reported only)
     rows = []
@@ -215,6 +243,8 @@ def main(argv: list[str] | None = None) -> None:
               "projection": asdict(ProjectionSettings())}
     (out / "report.json").write_text(json.dumps(report, indent=1))
     log.info("wrote %s", out / "report.json")
+    if args.install:
+        install(out, REPO_ROOT / "assets" / "models" / args.garment)
 
 
 if __name__ == "__main__":
