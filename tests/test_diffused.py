@@ -74,9 +74,13 @@ def test_deshaped_to_shaped_is_the_identity_on_the_neutral_body(built):
     assert diffused.weights(X).shape == X.shape[:2] + (body.num_bones,)
 
 
-def test_torch_grid_equals_the_numpy_lookup_and_has_its_gradient(built):
+@pytest.mark.parametrize("dense", [True, False], ids=["dense", "gather"])
+def test_torch_grid_equals_the_numpy_lookup_and_has_its_gradient(built, dense, monkeypatch):
     torch = pytest.importorskip("torch")
     from training.projection import TorchBandGrid
+
+    if not dense:
+        monkeypatch.setattr(TorchBandGrid, "DENSE_BYTES", 0)
 
     diffused, _ = built
     grid = diffused.grid
@@ -88,6 +92,7 @@ def test_torch_grid_equals_the_numpy_lookup_and_has_its_gradient(built):
                         grid.fine.origin + rng.uniform(0.05, 0.95, (16, 3)) * (grid.fine.dims - 1) * grid.fine.spacing]).astype(np.float32)
     fine, coarse = diffused.skin["fine"], diffused.skin["coarse"]
     tg = TorchBandGrid(grid, fine, coarse)
+    assert (tg.volume is not None) == dense
     np.testing.assert_allclose(tg(torch.as_tensor(p, dtype=torch.float64)).numpy(), grid.interpolate(p, fine, coarse), atol=1e-5)
     # d sdf / dp by autograd against central differences, at points away from cell faces
     x = torch.as_tensor(p, dtype=torch.float64).requires_grad_(True)

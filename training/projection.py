@@ -39,15 +39,38 @@ from training.physics import ClothGeometry, deformation_gradients
 class TorchBandGrid:
     """``inference.diffused.BandGrid`` in torch: the same two-level trilinear interpolation
     (the fine band's cell, a corner off the band read from the coarse grid), clamped to the
-    box, differentiable in the points (the tables are constants)."""
+    box, differentiable in the points (the tables are constants).
+
+    Tables of few channels (``DENSE_BYTES``) are expanded once to the whole fine grid (a node off
+    the band holds the coarse grid's value there, which is what its corner reads) and read by
+    ``torch.nn.functional.grid_sample`` (several times faster, backward included); wider ones
+    gather the band's rows per call."""
+
+    DENSE_BYTES = 64 << 20
 
     def __init__(self, grid: BandGrid, fine: np.ndarray, coarse: np.ndarray, dtype: torch.dtype = torch.float64):
+        fine, coarse = np.asarray(fine), np.asarray(coarse)
         self.origin = torch.as_tensor(grid.fine.origin, dtype=dtype)
         self.levels = {name: (g.spacing, torch.as_tensor(g.dims), torch.as_tensor(g.strides)) for name, g in (("fine", grid.fine), ("coarse", grid.coarse))}
-        self.row = torch.as_tensor(grid.row.astype(np.int64))
-        self.fine = torch.as_tensor(np.asarray(fine), dtype=dtype)
-        self.coarse = torch.as_tensor(np.asarray(coarse), dtype=dtype)
         self.corners = torch.as_tensor(CORNERS)
+        n_dense = int(np.prod(grid.fine.dims))
+        self.volume = None
+        if n_dense * fine.shape[1] * torch.finfo(dtype).bits // 8 <= self.DENSE_BYTES:
+            table = np.empty((n_dense, fine.shape[1]), np.float64)
+            on = grid.row >= 0
+            table[on] = fine[grid.row[on]]
+            off = np.flatnonzero(~on)
+            for a in range(0, len(off), 1 << 18):
+                ids = off[a:a + (1 << 18)]
+                nodes = grid.fine.origin + grid.fine.spacing * np.stack(np.unravel_index(ids, tuple(grid.fine.dims)), -1)
+                table[ids] = grid.coarse.interpolate(nodes.astype(np.float32), coarse)
+            self.extent = torch.as_tensor((grid.fine.dims - 1).astype(np.float64) * grid.fine.spacing, dtype=dtype)
+            # (1, C, nx, ny, nz): grid_sample's (N, C, D, H, W), so a point's (x, y, z) is read as (W, H, D) = (z, y, x)
+            self.volume = torch.as_tensor(table.T.reshape(1, table.shape[1], *grid.fine.dims), dtype=dtype).contiguous()
+        else:
+            self.row = torch.as_tensor(grid.row.astype(np.int64))
+            self.fine = torch.as_tensor(fine, dtype=dtype)
+            self.coarse = torch.as_tensor(coarse, dtype=dtype)
 
     def _cells(self, points: torch.Tensor, level: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Lowest node (N, 3), corner flat ids (N, 8), trilinear weights (N, 8) (``Grid.cells``)."""
@@ -65,6 +88,11 @@ class TorchBandGrid:
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N, C)."""
+        if self.volume is not None:
+            g = 2.0 * (points - self.origin) / self.extent - 1.0
+            out = torch.nn.functional.grid_sample(self.volume, g.flip(-1).reshape(1, 1, 1, -1, 3), mode="bilinear",
+                                                  padding_mode="border", align_corners=True)
+            return out.reshape(self.volume.shape[1], -1).T
         i0, idx, w = self._cells(points, "fine")
         rows = self.row[idx]
         vals = self.fine[rows.clamp(min=0)]  # (N, 8, C), constants
