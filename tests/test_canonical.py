@@ -144,3 +144,14 @@ def r_gamma(motion: PoseSequence) -> np.ndarray:
     from inference.motion.descriptor import motion_descriptor
 
     return motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)
+
+
+def test_a_layered_canonical_outfit_keeps_the_layer_pushes_and_ends_outside_the_body(setup):
+    body, catalog, canonical = setup
+    clip = ClipLibrary().load("walk")
+    motion = PoseSequence(clip.rotations[:3], clip.translation[:3], clip.fps)
+    r = drape(body, body.shape(HEAVY), motion, [catalog.get("tshirt"), catalog.get("jacket")], DrapeOptions(fit="canonical", dynamics="none"),
+              canonical=canonical)
+    assert "guard" in r.timings_ms and "repair" in r.timings_ms
+    for g in r.garments:
+        assert not inside_mask(g.vertices, r.body_vertices, body.faces).any()

@@ -366,3 +366,19 @@ def test_bundled_clips_are_in_place_by_default(client):
     np.testing.assert_allclose(g_in[:, 2], g_out[:, 2], atol=1e-5)  # the vertical is kept
     # the garment relative to the body is the same either way
     np.testing.assert_allclose(g_in - b_in, g_out - b_out, atol=1e-4)
+
+
+def test_the_canonical_fit_is_selectable_and_named_in_the_metadata(client):
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz", "options": {"fit": "canonical", "dynamics": "none"}})
+    assert r.status_code == 200, r.text
+    z = np.load(io.BytesIO(r.content), allow_pickle=False)
+    meta = json.loads(str(z["metadata"]))
+    assert meta["model_versions"]["fit"]["tshirt"].startswith("diffused-canonical")
+    assert meta["model_versions"]["guard"] == "none" and meta["model_versions"]["repair"].startswith("winding-repair")
+    assert "body/diffused.npz" in meta["asset_files_sha256"]
+    from inference.metrics import inside_mask
+
+    assert not inside_mask(z["garment_0_vertices"], z["body_vertices"], z["body_faces"]).any()
+    # no garment ships a learned canonical model: dynamics 'learned' is a 422 naming the field
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "options": {"fit": "canonical", "dynamics": "learned"}})
+    assert r.status_code == 422 and r.json()["errors"][0]["pointer"] == "/options/dynamics", r.text
