@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+import scipy.sparse
 
 from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.errors import InputShapeError, InputValueError
@@ -137,7 +138,7 @@ class CanonicalModels:
         self.models_dir = Path(models_dir)
         self.threads = threads
         self._diffused: DiffusedBody | None = None
-        self._templates: dict[str, np.ndarray] = {}
+        self._templates: dict[str, tuple[np.ndarray, np.ndarray, scipy.sparse.csr_matrix]] = {}
         self._learned: dict[str, CanonicalGarment] = {}
         self._lock = threading.Lock()
 
@@ -151,10 +152,15 @@ class CanonicalModels:
     def template(self, garment: GarmentAsset) -> np.ndarray:
         """X of the garment (V, 3) float32: its template pushed out of the canonical body to its
         collision margin (``material.collision_margin_m``)."""
+        return self._static(garment)[0]
+
+    def _static(self, garment: GarmentAsset) -> tuple[np.ndarray, np.ndarray, scipy.sparse.csr_matrix]:
+        """X, W~(X) (V, J) and the shape operator at X (``DiffusedBody.shape_operator``), once per garment."""
         diffused = self.diffused
         with self._lock:
             if garment.id not in self._templates:
-                self._templates[garment.id] = push_out(diffused, garment.template, margin(garment))[0]
+                X = push_out(diffused, garment.template, margin(garment))[0]
+                self._templates[garment.id] = (X, diffused.weights(X), diffused.shape_operator(X))
             return self._templates[garment.id]
 
     def rest_fit(self, garment: GarmentAsset, rest_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -163,9 +169,12 @@ class CanonicalModels:
 
         rest_vertices : (Vb, 3) the body's rest vertices (``BodyShape.rest_vertices[0]``)
         """
-        X = self.template(garment)
+        X, W, S = self._static(garment)
         d = self.diffused
-        return d.deshaped_to_shaped(X, d.offsets(rest_vertices)), d.weights(X)
+        v = np.asarray(rest_vertices, np.float32)
+        if v.shape != d.neutral_vertices.shape:
+            raise InputShapeError("rest_vertices", str(d.neutral_vertices.shape), v.shape)
+        return (X + S @ (v - d.neutral_vertices)).astype(np.float32), W
 
     def available(self, garment_id: str) -> bool:
         """Whether the garment ships a learned canonical model (without loading it)."""

@@ -123,6 +123,24 @@ class BandGrid:
             vals[n, c] = self.coarse.interpolate(corner, coarse)
         return np.einsum("nc,ncd->nd", w, vals, optimize=True)
 
+    def operators(self, points: np.ndarray) -> tuple[scipy.sparse.csr_matrix, scipy.sparse.csr_matrix]:
+        """The interpolation at points (N, 3) as two sparse matrices, P_fine (N, n_fine) and
+        P_coarse (N, n_coarse): ``interpolate(points, fine, coarse) = P_fine fine + P_coarse coarse``
+        (a corner off the band spread over the coarse cell holding it). For points read many
+        times, or composed with the diffusion kernels (``DiffusedBody.shape_operator``)."""
+        p = np.asarray(points, np.float32).reshape(-1, 3)
+        i0, idx, w = self.fine.cells(p)
+        rows = self.row[idx]
+        on = rows >= 0
+        n_on, c_on = np.nonzero(on)
+        P_fine = scipy.sparse.csr_matrix((w[on], (n_on, rows[on])), shape=(len(p), self.fine_count))
+        n_off, c_off = np.nonzero(~on)
+        corner = self.fine.origin + self.fine.spacing * (i0[n_off] + CORNERS[c_off]).astype(np.float32)
+        _, cidx, cw = self.coarse.cells(corner)
+        vals = (w[n_off, c_off][:, None] * cw).ravel()
+        P_coarse = scipy.sparse.csr_matrix((vals, (np.repeat(n_off, 8), cidx.ravel())), shape=(len(p), self.coarse_count))
+        return P_fine, P_coarse
+
     def interpolate(self, points: np.ndarray, fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
         """The fields of ``fine`` (n_fine, C) and ``coarse`` (n_coarse, C) at points (..., 3) -> (..., C) float32."""
         p = np.asarray(points, np.float32)
@@ -221,6 +239,14 @@ class DiffusedBody:
         while len(self._offsets) > OFFSET_CACHE:
             self._offsets.popitem(last=False)
         return out
+
+    def shape_operator(self, points: np.ndarray) -> scipy.sparse.csr_matrix:
+        """B~s at fixed points (N, 3) as one sparse (N, V) matrix S over the body's vertices:
+        B~s(points, beta) = S (v(beta) - v(neutral)) for any body (the interpolation composed with
+        the kernels; about 100 entries a row). A static canonical garment reads its offsets with
+        one product per body instead of contracting the grids (``CanonicalModels``)."""
+        P_fine, P_coarse = self.grid.operators(points)
+        return (P_fine @ self.kernels["fine"].matrix + P_coarse @ self.kernels["coarse"].matrix).tocsr()
 
     def shape_offsets(self, points: np.ndarray, offsets: BodyOffsets) -> np.ndarray:
         """B~s(p, beta) (eq. 6.5) at points (..., 3) -> (..., 3) metres."""

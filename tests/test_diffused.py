@@ -181,3 +181,17 @@ def test_numpy_pose_equals_the_torch_canonical_model(built):
     with torch.no_grad():
         want = np.stack([tb.pose(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(t, dtype=torch.float64))[0].numpy() for x, t in zip(X, T[0])])
     np.testing.assert_allclose(got, want, atol=2e-5)
+
+
+def test_the_sparse_operators_equal_the_interpolation(built):
+    """BandGrid.operators and DiffusedBody.shape_operator reproduce interpolate / shape_offsets."""
+    diffused, _ = built
+    body = BodyModel.load()
+    rng = np.random.default_rng(4)
+    V = diffused.neutral_vertices
+    p = np.concatenate([V[rng.choice(len(V), 200)] + rng.normal(0.0, 0.05, (200, 3)),
+                        diffused.grid.fine.origin + rng.uniform(0.0, 1.0, (50, 3)) * (diffused.grid.fine.dims - 1) * diffused.grid.fine.spacing]).astype(np.float32)
+    Pf, Pc = diffused.grid.operators(p)
+    np.testing.assert_allclose(Pf @ diffused.skin["fine"] + Pc @ diffused.skin["coarse"], diffused.grid.interpolate(p, diffused.skin["fine"], diffused.skin["coarse"]), atol=1e-5)
+    heavy = body.shape(np.ones((1, 6), np.float32)).rest_vertices[0]
+    np.testing.assert_allclose(diffused.shape_operator(p) @ (heavy - V), diffused.shape_offsets(p, diffused.offsets(heavy)), atol=1e-5)
