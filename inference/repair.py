@@ -26,6 +26,7 @@ Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 
@@ -98,7 +99,7 @@ def repair_layers(
     B, T = Bv.shape[:2]
     Bv = Bv.reshape(B * T, -1, 3)
     if skin is None:
-        skin = major_components(body_faces, Bv.shape[1])
+        skin = _skin(np.asarray(body_faces), Bv.shape[1])
     skin_ids = np.flatnonzero(skin)
     skin_faces = np.asarray(body_faces)[skin[body_faces].all(1)]
     k = int(min(k, len(skin_ids)))
@@ -114,9 +115,11 @@ def repair_layers(
             if not len(frame):
                 continue
             ok = np.zeros(len(frame), bool)
+            trees: dict[int, cKDTree] = {}  # the posed skin's KD-tree per frame, built once
             for kk in (k, far):  # deep in an overlap every near target is inside too: look farther
                 rem = np.flatnonzero(~ok)
-                ok[rem] = _move_outside(Pb, grid, frame[rem], idx[rem], _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, margins_m[i], kk))
+                targets = _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, margins_m[i], kk, trees)
+                ok[rem] = _move_outside(Pb, grid, frame[rem], idx[rem], targets)
                 if ok.all():
                     break
             left += int((~ok).sum())
@@ -125,13 +128,27 @@ def repair_layers(
     return [P.reshape(B, T, -1, 3) for P in out], left
 
 
-def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k) -> np.ndarray:
-    """Targets (n, k, 3) on the k posed skin vertices nearest to each point (a KD-tree per frame)."""
+def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees: dict) -> np.ndarray:
+    """Targets (n, k, 3) on the k posed skin vertices nearest to each point (a KD-tree per frame,
+    kept in ``trees`` for the next pass)."""
     ids = np.empty((len(frame), k), np.int64)
     for f in np.unique(frame):  # C code
         sel = np.flatnonzero(frame == f)
-        ids[sel] = skin_ids[cKDTree(Bb[f, skin_ids]).query(Pb[f, idx[sel]], k=k)[1].reshape(len(sel), k)]
+        if f not in trees:
+            trees[f] = cKDTree(Bb[f, skin_ids])
+        ids[sel] = skin_ids[trees[f].query(Pb[f, idx[sel]], k=k)[1].reshape(len(sel), k)]
     return _targets(Bb, frame, ids, skin_faces, margin_m)
+
+
+@functools.lru_cache(maxsize=4)
+def _skin_cached(faces_bytes: bytes, shape: tuple[int, int], num_vertices: int) -> np.ndarray:
+    return major_components(np.frombuffer(faces_bytes, np.int64).reshape(shape), num_vertices)
+
+
+def _skin(faces: np.ndarray, num_vertices: int) -> np.ndarray:
+    """``major_components`` of a body's faces, computed once per topology (~5 ms a call)."""
+    f = np.ascontiguousarray(faces, np.int64)
+    return _skin_cached(f.tobytes(), f.shape, num_vertices)
 
 
 def _targets(Bb, frame, ids, skin_faces, margin_m) -> np.ndarray:
