@@ -395,11 +395,19 @@ def _summary(rows: list[dict]) -> list[str]:
 
 def _row_key(case: Case, garment: str, reference_dir: Path) -> str:
     """What a judged row depends on besides the shipped assets: the code and constants that make
-    a row here, the metrics module, and the reference files (name, size, mtime) of the case."""
+    a row here, the metrics module, the pipeline's modules the methods run, and the reference
+    files (name, size, mtime) of the case."""
     import hashlib
     import inspect
 
+    import inference.canonical
+    import inference.diffused
+    import inference.pipeline
+    import inference.repair
+
     h = hashlib.sha256(Path(inspect.getsourcefile(realism)).read_bytes())
+    for module in (inference.pipeline, inference.repair, inference.canonical, inference.diffused):  # what the methods run
+        h.update(Path(inspect.getsourcefile(module)).read_bytes())
     for fn in (judge_case, realism_failures, worse_on_realism, slid_pct, carried_vertices, mean_error_cm, _energies, _collisions):
         h.update(inspect.getsource(fn).encode())
     h.update(repr((METHODS, REALISM_MARGINS, RETARGET_TOLERANCE, SLID_M, MAX_SLID_PCT)).encode())
