@@ -200,8 +200,9 @@ def test_guard_check_is_on_by_default_and_optional(client):
         z = np.load(io.BytesIO(r.content), allow_pickle=False)
         return z["garment_0_vertices"], json.loads(str(z["metadata"]))["model_versions"]
 
-    checked, versions = run({"guard_exact": False})
-    plain, versions_off = run({"guard_check": False, "guard_exact": False})
+    retarget = {"fit": "retarget", "dynamics": "none"}  # a posed-space garment: the guard's pushes run (not a lone canonical one)
+    checked, versions = run({**retarget, "guard_exact": False})
+    plain, versions_off = run({**retarget, "guard_check": False, "guard_exact": False})
     assert versions["guard"] == "plane-push-v4" and versions_off["guard"] == "plane-push-v3"
     # the check moves the vertices the plane push left inside the body, and only those
     moved = np.linalg.norm(checked - plain, axis=-1) > 0
@@ -245,7 +246,7 @@ def test_drape_metadata_names_each_garments_method(client):
     body = {**WALK_TSHIRT, "garments": [{"id": "tshirt"}, {"id": "trousers"}], "motion": {"type": "clip", "clip": "walk", "duration_s": 0.2},
             "options": {"include_body": False, "guard": False}}
     defaults = {g: client.get(f"/v1/garments/{g}").json()["default_method"] for g in ("tshirt", "trousers")}
-    versions = {"learned": "snug-", "retarget": "mhclo-retarget", "none": "none"}
+    versions = {"canonical": "diffused-canonical", "learned": "snug-", "retarget": "mhclo-retarget", "none": "none"}
     r = client.post("/v1/drape", json={**body, "format": "npz"})
     assert r.status_code == 200, r.text
     meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
