@@ -380,6 +380,14 @@ def test_the_canonical_fit_is_selectable_and_named_in_the_metadata(client):
     from inference.metrics import inside_mask
 
     assert not inside_mask(z["garment_0_vertices"], z["body_vertices"], z["body_faces"]).any()
-    # no garment ships a learned canonical model: dynamics 'learned' is a 422 naming the field
-    r = client.post("/v1/drape", json={**WALK_TSHIRT, "options": {"fit": "canonical", "dynamics": "learned"}})
+    # the T-shirt ships a learned canonical model (regressor + decoder), named in the metadata ...
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "format": "npz", "options": {"fit": "canonical", "dynamics": "learned"}})
+    assert r.status_code == 200, r.text
+    z = np.load(io.BytesIO(r.content), allow_pickle=False)
+    meta = json.loads(str(z["metadata"]))
+    assert meta["model_versions"]["dynamics"]["tshirt"].startswith("canonical-vae-gru")
+    assert {"models/tshirt/canonical.json", "models/tshirt/canonical_decoder.onnx", "models/tshirt/canonical_regressor.onnx"} <= set(meta["asset_files_sha256"])
+    assert not inside_mask(z["garment_0_vertices"], z["body_vertices"], z["body_faces"]).any()
+    # ... the jacket does not: dynamics 'learned' is a 422 naming the field
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "garments": [{"id": "jacket"}], "options": {"fit": "canonical", "dynamics": "learned"}})
     assert r.status_code == 422 and r.json()["errors"][0]["pointer"] == "/options/dynamics", r.text

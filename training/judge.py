@@ -11,6 +11,8 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                  learned-fit : retarget + R_G, no dynamics (where the two models' errors come from)
                  canonical : the garment's canonical form through the diffused body (thesis
                            eq. 6.7-6.8, ``inference.canonical``), no dynamics
+                 canonical-learned : X_t = D(R(beta, gamma)) through it (ch. 6.4), where the
+                           garment ships the model (``canonical.json``)
                  retarget : the .mhclo retarget fit, no dynamics
                  lbs      : the neutral template, plain LBS
                the learned dynamics run from the clip's frame 0; every method is compared on the
@@ -24,7 +26,7 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                diagnostics only; ms per garment-frame of the pipeline on this machine
 
 Selection (validation split only; ``select_defaults``): a garment's default is the candidate
-('learned', 'learned-fit' or 'canonical', ``CANDIDATES``) with the lowest mean error when its mean error over the
+('learned', 'learned-fit', 'canonical' or 'canonical-learned', ``CANDIDATES``) with the lowest mean error when its mean error over the
 validation cases is below both baselines' means and it is not worse on realism on any of them;
 otherwise the retarget baseline (the plain LBS of the neutral template ignores the body shape, so
 it is a baseline, never a default). "Not worse on realism" is read against both anchors: a metric
@@ -53,6 +55,7 @@ import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel
 from inference.garment import GarmentCatalog
+from inference.learned import MissingModelError
 from inference.metrics import collision_rates, realism, unsigned_distance
 from inference.pipeline import DrapeOptions, PoseSequence, drape
 from training.protocol import BODIES, SPLITS, Case, case_motion, load_clip
@@ -66,6 +69,7 @@ METHODS: dict[str, DrapeOptions] = {
     "retarget": DrapeOptions(fit="retarget", dynamics="none", lift_arms=False),
     "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
     "canonical": DrapeOptions(fit="canonical", dynamics="none", lift_arms=False),
+    "canonical-learned": DrapeOptions(fit="canonical", dynamics="learned", lift_arms=False),
 }
 REFERENCE = ReferenceSettings()
 # A companion simulation "slid" where its carried half is more than MOVED_M from the reference's
@@ -228,7 +232,10 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
         m = motion if options.dynamics == "learned" else PoseSequence(motion.rotations[window], motion.translation[window], motion.fps)
         sl = window if options.dynamics == "learned" else slice(0, case.frames)
         t0 = time.perf_counter()
-        after = drape(body, shape, m, [asset], options)
+        try:
+            after = drape(body, shape, m, [asset], options)
+        except MissingModelError:  # a method whose model this garment does not ship
+            continue
         ms_per_frame = (time.perf_counter() - t0) * 1e3 / m.num_frames
         before = drape(body, shape, m, [asset], options.replace(guard=False))
         v_after, v_before = after.garments[0].vertices[sl], before.garments[0].vertices[sl]
@@ -256,7 +263,7 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
     return row
 
 
-CANDIDATES = ("learned", "learned-fit", "canonical")
+CANDIDATES = ("learned", "learned-fit", "canonical", "canonical-learned")
 BASELINES = ("retarget", "lbs")
 
 
