@@ -30,6 +30,34 @@ def test_grid_answers_several_point_sets_per_frame():
         grid.count(q[:1])
 
 
+def test_grids_alive_together_keep_their_own_bins():
+    """Each grid holds its own buffers of the per-thread pool until it is collected."""
+    v, f = _two_spheres()
+    p = np.array([[[0.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.5], [0.0, 0.0, 1.0]]], np.float32)
+    a = WindingGrid(v[None], f)
+    b = WindingGrid((v * 3.0)[None], f)  # bigger: the buffers a took are not enough
+    np.testing.assert_array_equal(a.count(p), [[2, 1, 0, 0]])
+    np.testing.assert_array_equal(b.count(p), [[2, 1, 0, 2]])
+    del a
+    c = WindingGrid(v[None] + [0.0, 0.0, 3.0], f)  # reuses a's buffers
+    np.testing.assert_array_equal(b.count(p), [[2, 1, 0, 2]])
+    np.testing.assert_array_equal(c.count(p + [0.0, 0.0, 3.0]), [[2, 1, 0, 0]])
+
+
+def test_far_from_the_origin_the_compiled_pre_test_stays_exact():
+    """float64 input 10 km from the origin: the float32 face boxes of the pre-test are widened,
+    so the counts equal libigl's exact winding numbers."""
+    import igl
+
+    v, f = _two_spheres()
+    off = np.array([1.0e4, -2.0e3, 7.5e3])
+    v64 = v.astype(np.float64) + off
+    q = np.random.default_rng(1).uniform(-2, 2, (3000, 3)) + off
+    q[:50] = v64[:50] + 1e-7  # within a micrometre of the surface, beyond float32's resolution here
+    exact = np.round(igl.winding_number(v64, f.astype(np.int64), q)).astype(np.int32)
+    np.testing.assert_array_equal(WindingGrid(v64[None], f).count(q[None])[0], exact)
+
+
 def test_points_inside_the_overlap_or_a_part_end_outside_and_others_stay():
     v, f = _two_spheres()
     # inside both parts (the lens: no target among the nearest 32 is outside), inside one part
