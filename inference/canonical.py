@@ -195,8 +195,9 @@ class CanonicalModels:
 
     def load_all(self, garment_ids) -> list[str]:
         """The diffused body, and every listed garment's learned model that ships (a service's
-        start-up: no request pays for it, a broken file stops the start); the ids loaded."""
-        _ = self.diffused
+        start-up: no request pays for it, a broken file stops the start); the ids loaded. Reads
+        the fields once, so that the compiled interpolation is ready too."""
+        self.diffused.sdf(np.zeros((1, 3), np.float32))
         loaded = [g for g in garment_ids if self.available(g)]
         for g in loaded:
             self.learned(g)

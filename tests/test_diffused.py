@@ -195,3 +195,17 @@ def test_the_sparse_operators_equal_the_interpolation(built):
     np.testing.assert_allclose(Pf @ diffused.skin["fine"] + Pc @ diffused.skin["coarse"], diffused.grid.interpolate(p, diffused.skin["fine"], diffused.skin["coarse"]), atol=1e-5)
     heavy = body.shape(np.ones((1, 6), np.float32)).rest_vertices[0]
     np.testing.assert_allclose(diffused.shape_operator(p) @ (heavy - V), diffused.shape_offsets(p, diffused.offsets(heavy)), atol=1e-5)
+
+
+def test_the_compiled_interpolation_equals_the_numpy_one(built):
+    """BandGrid.interpolate (numba) against interpolate_numpy: near the skin, across the band's
+    edge, inside the body, and beyond the box (clamped)."""
+    diffused, _ = built
+    rng = np.random.default_rng(5)
+    V = diffused.neutral_vertices
+    p = np.concatenate([V[rng.choice(len(V), 2000)] + rng.normal(0.0, 0.08, (2000, 3)),
+                        rng.uniform(-3.0, 3.0, (200, 3))]).astype(np.float32)
+    g = diffused.grid
+    for fine, coarse in ((diffused.skin["fine"], diffused.skin["coarse"]), (diffused.sdf_tables["fine"], diffused.sdf_tables["coarse"])):
+        np.testing.assert_allclose(g.interpolate(p, fine, coarse), g.interpolate_numpy(p, fine, coarse), atol=2e-6)
+    assert g.interpolate(p.reshape(2, 1100, 3), fine, coarse).shape == (2, 1100, 1)
