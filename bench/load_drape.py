@@ -6,7 +6,7 @@ Run: ``python bench/load_drape.py`` (defaults: concurrency 1 4 16 64, 12 s per l
 on (max_batch 8) and off (max_batch 1), then 20 s at 2x the measured capacity). Prints Markdown
 tables (copied into docs/benchmarks.md, section "Serving", with the machine description).
 
-Requests: 30 frames (1 s of the 'dance' clip at 30 fps from a random start), one garment (tshirt),
+Requests: 30 frames (``--frames``; 1 s of the 'dance' clip at 30 fps from a random start), one garment (tshirt),
 the default neutral body, npz, include_body false, guard on; every request is distinct (the
 cache is off too: TRYON_CACHE_MAX_BYTES=0), all share body, garment and options, so the batcher
 may merge them. Throughput is garment-frames per second of successful responses.
@@ -37,9 +37,11 @@ FRAMES = 30
 EXTRA_OPTIONS: dict = {}
 
 
-def body(rng: random.Random, frames: int = FRAMES, guard: bool = True) -> dict:
+def body(rng: random.Random, frames: int | None = None, guard: bool = True) -> dict:
+    frames = FRAMES if frames is None else frames
+    duration_s = (frames - 1) / 30.0 if frames > 1 else 0.01  # a clip's duration must be > 0; 0.01 s is one frame
     return {
-        "motion": {"type": "clip", "clip": "dance", "start_s": round(rng.uniform(0.0, 9.0), 3), "duration_s": (frames - 1) / 30.0},
+        "motion": {"type": "clip", "clip": "dance", "start_s": round(rng.uniform(0.0, 9.0), 3), "duration_s": duration_s},
         "garments": [{"id": "tshirt"}], "format": "npz", "options": {"include_body": False, "guard": guard, **EXTRA_OPTIONS},
     }
 
@@ -202,6 +204,7 @@ def machine() -> str:
 
 
 def main() -> None:
+    global FRAMES
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--levels", type=int, nargs="+", default=[1, 4, 16, 64])
     ap.add_argument("--duration", type=float, default=12.0, help="seconds per concurrency level")
@@ -212,9 +215,11 @@ def main() -> None:
     ap.add_argument("--overload-seconds", type=float, default=20.0, help="0: skip the 2x overload run")
     ap.add_argument("--timeout", type=float, default=60.0, help="client timeout, seconds")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--frames", type=int, default=30, help="frames per request (1: the single-frame latency)")
     ap.add_argument("--options", type=json.loads, default={}, help='extra request options, JSON (e.g. \'{"guard_check": false}\')')
     args = ap.parse_args()
     EXTRA_OPTIONS.update(args.options)
+    FRAMES = args.frames
 
     print(f"machine: {machine()}\n")
     print("\n".join(HEADER))

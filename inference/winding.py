@@ -37,6 +37,8 @@ from inference.errors import InputShapeError
 
 # Grid cell, in multiples of the median edge length.
 CELL_EDGES = 2.0
+# The median is taken over the first edge of every EDGE_SAMPLE-th face.
+EDGE_SAMPLE = 8
 # Frames binned at once by ``winding_numbers`` (bounds the memory of the face bins).
 FRAME_BLOCK = 16
 
@@ -118,13 +120,17 @@ class WindingGrid:
         self.u, self.v, self.y = (buf[: B * V] for buf in bufs)  # (B*V,)
         self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, used = _topology(faces)
 
-        # grid over each frame's projected mesh (its own origin), cell CELL_EDGES median edges
-        edge = verts[0, faces[:, 1]].astype(np.float64) - verts[0, faces[:, 0]]
+        # grid over each frame's projected mesh (its own origin), cell CELL_EDGES median edges (of
+        # every EDGE_SAMPLE-th face's first edge, frame 0)
+        edge = verts[0, faces[::EDGE_SAMPLE, 1]].astype(np.float64) - verts[0, faces[::EDGE_SAMPLE, 0]]
         self.h = h = CELL_EDGES * max(float(np.median(np.linalg.norm(edge, axis=1))), 1e-6)
-        uv = np.stack([self.u.reshape(B, V)[:, used], self.v.reshape(B, V)[:, used]], -1)  # (B, U, 2)
-        self.lo = np.ascontiguousarray(uv.min(1))  # (B, 2)
+        u, v = self.u.reshape(B, V), self.v.reshape(B, V)
+        if len(used) < V:
+            u, v = u[:, used], v[:, used]
+        self.lo = np.stack([u.min(1), v.min(1)], -1)  # (B, 2)
         # the kernels' own cell formula, floor((x - lo) / h) as a product (module winding_kernels)
-        self.ncell = np.floor((uv.max(1) - self.lo).max(0) * (1.0 / h)).astype(np.int64) + 1
+        extent = np.array([(u.max(1) - self.lo[:, 0]).max(), (v.max(1) - self.lo[:, 1]).max()])
+        self.ncell = np.floor(extent * (1.0 / h)).astype(np.int64) + 1
         ni, nj = int(self.ncell[0]), int(self.ncell[1])
         # the bins, in buffers of this thread's pool (returned when the grid is collected)
         start = _POOL.take("start", B * ni * nj + 1, np.int64)
