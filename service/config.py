@@ -39,7 +39,7 @@ class Settings(BaseSettings):
     worker_blas_threads: int = Field(1, ge=1, le=64, description="BLAS/OpenMP threads in each worker process (the workers are the parallelism); "
                                      "set for the worker processes' server when the first worker starts")
     max_batch: int = Field(8, ge=1, le=256, description="requests merged into one batch (1: batching off)")
-    max_wait_ms: float = Field(5.0, ge=0, le=1000, description="how long a batch waits for more requests once a worker is free")
+    max_wait_ms: float = Field(5.0, ge=0, le=1000, description="how long a batch waits for more requests once a worker is free, while no other worker is idle")
     max_queue: int = Field(32, ge=0, description="requests queued for a worker before 503 + Retry-After")
     max_queue_wait_s: float = Field(10.0, gt=0, description="503 at once when the expected wait in the queue exceeds this")
     worker_start_timeout_s: float = Field(120.0, gt=0)

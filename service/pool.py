@@ -3,7 +3,8 @@
     request -> queue (bounded: 503 + Retry-After when full; each item has a deadline)
             -> scheduler: when a worker is free, take the oldest item plus up to max_batch - 1
                queued items with the same merge key (service/batching.py), waiting at most
-               max_wait_ms for more -> worker -> one outcome per item
+               max_wait_ms for more while no other worker is idle -> worker -> one outcome
+               per item
 
 Workers are processes by default (``worker_mode='process'``): a worker that dies (segfault,
 OOM kill) or hangs is detected, killed and replaced; each of its requests is retried once, alone,
@@ -379,7 +380,10 @@ class WorkerPool:
             worker = await self._idle.get()
             first = await self._next_item()
             batch = [first]
-            if first.kind == "drape" and first.key is not None and first.attempts == 0 and s.max_batch > 1:
+            # wait for requests to merge only while no other worker is idle: one that arrives
+            # meanwhile would otherwise start at once on an idle worker (at low load the wait is
+            # pure latency)
+            if first.kind == "drape" and first.key is not None and first.attempts == 0 and s.max_batch > 1 and self._idle.empty():
                 wait_until = first.enqueued + s.max_wait_ms / 1e3
                 while True:
                     self._take_compatible(batch)

@@ -88,6 +88,27 @@ def test_concurrent_compatible_requests_are_batched():
     assert sum(rt.batches) == 4 and max(rt.batches) >= 3, rt.batches
 
 
+def test_a_request_with_an_idle_worker_to_spare_does_not_wait_to_be_merged():
+    """Two workers, a long max_wait: the first request starts at once (the other worker could take
+    any request that comes meanwhile), so a second one 50 ms later runs on the other worker
+    instead of joining the first's batch; once both workers are busy, requests wait and merge."""
+    rt = FakeRuntime(0.3)
+
+    async def main():
+        pool = _pool(rt, workers=2, max_wait_ms=150.0)
+        await pool.start()
+        first = asyncio.create_task(pool.drape(_request("walk")))
+        await asyncio.sleep(0.05)
+        rest = [asyncio.create_task(pool.drape(_request(c))) for c in ("run", "jump", "dance")]
+        outs = await asyncio.gather(first, *rest)
+        await pool.close()
+        return outs
+
+    outs = asyncio.run(main())
+    assert [o.payload for o in outs] == [b"walk", b"run", b"jump", b"dance"]
+    assert rt.batches == [1, 3], rt.batches  # walk alone at once; the others wait on the busy pool and merge
+
+
 def test_batching_off_and_incompatible_requests_run_alone():
     rt = FakeRuntime(0.01)
 
