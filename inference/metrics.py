@@ -11,6 +11,8 @@ its normal has winding number >= 2 with respect to the body's major components (
 its own part and inside another one); small components (the eyes and teeth, < 10 % of the
 vertices) are ignored. Garment vertices closer than ``exclusion_radius_m`` to such a vertex are
 reported separately ("clean" rates), as the thesis does (ch. 6.6.1).
+Layers: ``layer_violations`` (inner vertices beyond the outer layer) here; the intersecting
+triangle pairs between two layers in ``inference.intersections`` (exact, compiled).
 
 Units: metres. Shapes: batch axis first; a frame is one (points, mesh) pair.
 """

@@ -1,0 +1,61 @@
+"""Intersecting triangle pairs between two layers (inference/intersections.py)."""
+import numpy as np
+import pytest
+import trimesh
+
+from inference.errors import InputShapeError
+from inference.intersections import layer_intersection_faces, layer_intersections
+
+
+def _sphere(radius=1.0, centre=(0.0, 0.0, 0.0), subdivisions=2):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return (s.vertices + centre).astype(np.float32), s.faces
+
+
+def _brute_force(A, Fa, B, Fb) -> int:
+    """Every pair, numpy, the same predicate (an edge of one crosses the other; zeros do not count)."""
+    A, B = A.astype(np.float64), B.astype(np.float64)
+
+    def orient(a, b, c, d):
+        return np.einsum("...i,...i->...", np.cross(b - a, c - a), d - a)
+
+    def crosses(P, Fp, T, Ft):  # (Fp, 3 edges) x Ft
+        hit = np.zeros((len(Fp), len(Ft)), bool)
+        a, b, c = (T[Ft[:, k]][None] for k in range(3))
+        for k in range(3):
+            p, q = P[Fp[:, k]][:, None], P[Fp[:, (k + 1) % 3]][:, None]
+            sp, sq = orient(a, b, c, p), orient(a, b, c, q)
+            e = np.stack([orient(p, q, a, b), orient(p, q, b, c), orient(p, q, c, a)])
+            hit |= (sp * sq < 0) & ((e > 0).all(0) | (e < 0).all(0))
+        return hit
+
+    return int((crosses(A, Fa, B, Fb) | crosses(B, Fb, A, Fa).T).sum())
+
+
+def test_crossing_spheres_match_the_brute_force_count():
+    a, fa = _sphere(1.0)
+    b, fb = _sphere(0.9, (0.7, 0.1, -0.05))
+    n = layer_intersections(a[None], fa, b[None], fb)
+    assert n.shape == (1,) and n[0] > 0
+    assert n[0] == _brute_force(a, fa, b, fb)
+    # per inner face: the faces along the intersection curve, nowhere else
+    per_face = layer_intersection_faces(a[None], fa, b[None], fb)[0]
+    assert per_face.sum() == n[0] and 0 < (per_face > 0).sum() < len(fa) // 2
+
+
+def test_nested_layers_do_not_intersect_and_frames_are_independent():
+    inner, fi = _sphere(1.0)
+    outer, fo = _sphere(1.02)  # a layer 2 cm outside
+    shifted = outer + np.float32([0.3, 0.0, 0.0])  # frame 1: the outer layer slid through the inner
+    n = layer_intersections(np.stack([inner, inner]), fi, np.stack([outer, shifted]), fo)
+    assert n[0] == 0 and n[1] == _brute_force(inner, fi, shifted, fo) > 0
+
+
+def test_shapes_are_checked():
+    a, fa = _sphere()
+    with pytest.raises(InputShapeError):
+        layer_intersections(a, fa, a[None], fa)
+    with pytest.raises(InputShapeError):
+        layer_intersections(a[None], fa, np.stack([a, a]), fa)
+    with pytest.raises(InputShapeError):
+        layer_intersections(a[None], fa + len(a), a[None], fa)
