@@ -1,11 +1,12 @@
-"""The exact local untangling operator (thesis eq. 7.6; training/untangle.py)."""
+"""The exact local untangling operator (thesis eq. 7.6; inference/untangle.py) and its samples."""
 import itertools
 
 import numpy as np
 import pytest
 
 from inference.errors import InputShapeError
-from training.untangle import sample_untangling, tangled, untangle_exact
+from inference.untangle import tangled, untangle_exact
+from training.untangle import sample_untangling
 
 
 def _brute_force(f, h):
