@@ -74,7 +74,11 @@ class _Pool(threading.local):
         return np.empty(max(size, 1024), dtype)
 
     def give(self, name: str, buf: np.ndarray) -> None:
-        self.free.setdefault((name, buf.dtype.str), []).append(buf)
+        """Keep one buffer per name (the larger), so that a thread holds at most one grid's worth
+        (~40 MB for FRAME_BLOCK frames of the body)."""
+        free = self.free.setdefault((name, buf.dtype.str), [])
+        if not free or free[0].size < buf.size:
+            free[:] = [buf]
 
 
 _POOL = _Pool()
