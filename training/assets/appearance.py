@@ -39,6 +39,12 @@ COLOURS = {  # sRGB, chosen per garment (the sources' textures are not part of t
     "trousers": "#2f3e5c",  # dark denim
     "dress": "#1f6f73",  # deep teal
     "jacket": "#5c6338",  # olive field jacket
+    "crewtee": "#d9c9a3",  # oatmeal
+    "leggings": "#2b2b30",  # charcoal
+    "shorts": "#c2a878",  # khaki
+    "croptop": "#d8707e",  # rose
+    "shirt": "#e6e2d6",  # off-white
+    "suittrousers": "#3a3a42",  # suit grey
 }
 SHEEN_LIGHTEN = 0.3
 SHEEN_ROUGHNESS = 0.5

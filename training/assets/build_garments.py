@@ -102,6 +102,18 @@ GARMENTS = (
     GarmentSpec("dress", "Dress", "dress", 1, "female_elegantsuit01", (1, 0), (1810, 395), (0, 1), 0.004, 0.003,
                 "Long-sleeved dress: the blouse of female_elegantsuit01 (folded collar removed, button "
                 "placket closed) stitched at its hem to the outfit's skirt (back vent kept)."),
+    GarmentSpec("crewtee", "Crew-neck tee", "top", 1, "male_casualsuit04", (0,), (810,), (0,), 0.004, 0.003,
+                "Fitted short-sleeved crew-neck tee (the top of male_casualsuit04; its trousers are left out)."),
+    GarmentSpec("leggings", "Leggings", "bottom", 0, "female_casualsuit01", (1,), (886,), (0,), 0.004, 0.003,
+                "Ankle-length leggings (the bottom of female_casualsuit01)."),
+    GarmentSpec("shorts", "Shorts", "bottom", 0, "female_casualsuit02", (0,), (1320,), (0,), 0.004, 0.003,
+                "Short shorts (the bottom of female_casualsuit02; its top is the T-shirt's mesh again)."),
+    GarmentSpec("croptop", "Crop top", "top", 1, "female_sportsuit01", (0,), (911,), (0,), 0.004, 0.003,
+                "Sports crop top (the top of female_sportsuit01; its leggings are the catalog's leggings)."),
+    GarmentSpec("shirt", "Shirt", "top", 1, "male_casualsuit06", (0,), (2822,), (), 0.004, 0.003,
+                "Short-sleeved collared shirt (the top of male_casualsuit06; its trousers are left out)."),
+    GarmentSpec("suittrousers", "Suit trousers", "bottom", 0, "male_elegantsuit01", (0,), (1357,), (0,), 0.004, 0.003,
+                "Suit trousers (the bottom of male_elegantsuit01; its suit jacket is left out)."),
     GarmentSpec("jacket", "Jacket", "outer", 2, "male_casualsuit05", (1,), (1659,), (0,), 0.014, 0.008,
                 "Open-front field jacket with pockets (the jacket of male_casualsuit05; its collar, "
                 "shirt front and trousers are left out). Outer layer: worn over a top."),
