@@ -480,7 +480,8 @@ def main(argv: list[str] | None = None) -> None:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"results": results, "defaults": defaults}, indent=1))
     if args.write:
-        cmd = "python -m training.judge " + " ".join(f"--split {s}" for s in args.split) + f" --write {args.write}"
+        cmd = ("python -m training.judge " + " ".join(f"--split {s}" for s in args.split)
+               + "".join(f" --garment {g}" for g in args.garment or []) + f" --write {args.write}")
         args.write.write_text(markdown(results, defaults, cmd, missing))
         log.info("wrote %s", args.write)
 
