@@ -85,24 +85,21 @@ def _cell_range(lo, hi, origin, inv_h, n):
 
 
 @numba.njit(**_JIT)
-def intersecting_faces(A, Fa, B, Fb, h):
-    """Per inner face (Fa rows) the number of outer faces (Fb rows) it intersects, (Fa,) int32.
-
-    A (Va, 3), B (Vb, 3) float64 vertices; Fa, Fb int64 faces; h: cell size, metres.
-    """
-    nA, nB = Fa.shape[0], Fb.shape[0]
-    out = np.zeros(nA, np.int32)
-    if nA == 0 or nB == 0:
-        return out
+def _bin_faces(B, Fb, h):
+    """Bin the faces Fb of B into a uniform grid of cell h by their boxes: returns origin (3,),
+    top (3,), dims (3,), boxes (Fb, 6) lo/hi, cells (Fb, 6) i0, i1, j0, j1, k0, k1, and the CSR
+    start (cells + 1,) / members of each cell's faces."""
+    nB = Fb.shape[0]
     origin = np.empty(3)
     top = np.empty(3)
     for d in range(3):
         origin[d] = B[:, d].min()
         top[d] = B[:, d].max()
     inv_h = 1.0 / h
-    n0 = int(np.floor((top[0] - origin[0]) * inv_h)) + 1
-    n1 = int(np.floor((top[1] - origin[1]) * inv_h)) + 1
-    n2 = int(np.floor((top[2] - origin[2]) * inv_h)) + 1
+    dims = np.empty(3, np.int64)
+    for d in range(3):
+        dims[d] = int(np.floor((top[d] - origin[d]) * inv_h)) + 1
+    n0, n1, n2 = dims[0], dims[1], dims[2]
     boxes = np.empty((nB, 6), np.float64)
     cells = np.empty((nB, 6), np.int64)
     start = np.zeros(n0 * n1 * n2 + 1, np.int64)
@@ -127,6 +124,22 @@ def intersecting_faces(A, Fa, B, Fb, h):
                     c = (i * n1 + j) * n2 + k
                     members[fill[c]] = f
                     fill[c] += 1
+    return origin, top, dims, boxes, cells, start, members
+
+
+@numba.njit(**_JIT)
+def intersecting_faces(A, Fa, B, Fb, h):
+    """Per inner face (Fa rows) the number of outer faces (Fb rows) it intersects, (Fa,) int32.
+
+    A (Va, 3), B (Vb, 3) float64 vertices; Fa, Fb int64 faces; h: cell size, metres.
+    """
+    nA, nB = Fa.shape[0], Fb.shape[0]
+    out = np.zeros(nA, np.int32)
+    if nA == 0 or nB == 0:
+        return out
+    origin, top, dims, boxes, cells, start, members = _bin_faces(B, Fb, h)
+    n0, n1, n2 = dims[0], dims[1], dims[2]
+    inv_h = 1.0 / h
     for g in range(nA):
         lo0, lo1, lo2, hi0, hi1, hi2 = _box(A, Fa[g])
         if hi0 < origin[0] or lo0 > top[0] or hi1 < origin[1] or lo1 > top[1] or hi2 < origin[2] or lo2 > top[2]:
@@ -153,6 +166,54 @@ def intersecting_faces(A, Fa, B, Fb, h):
     return out
 
 
+@numba.njit(**_JIT)
+def first_crossings(P, Q, B, Fb, h):
+    """Segments P[n] -> Q[n] against the triangles Fb of B (module doc's crossing test): the
+    number of triangles each crosses, (N,) int32, and the segment parameter in [0, 1] of its
+    crossing nearest P, (N,) float64 (2.0 where none). P, Q (N, 3), B (Vb, 3) float64; h: cell."""
+    N = P.shape[0]
+    count = np.zeros(N, np.int32)
+    first = np.full(N, 2.0)
+    if N == 0 or Fb.shape[0] == 0:
+        return count, first
+    origin, top, dims, boxes, cells, start, members = _bin_faces(B, Fb, h)
+    n0, n1, n2 = dims[0], dims[1], dims[2]
+    inv_h = 1.0 / h
+    S = np.empty((2, 3))
+    for g in range(N):
+        for d in range(3):
+            S[0, d] = P[g, d]
+            S[1, d] = Q[g, d]
+        lo0, hi0 = min(S[0, 0], S[1, 0]), max(S[0, 0], S[1, 0])
+        lo1, hi1 = min(S[0, 1], S[1, 1]), max(S[0, 1], S[1, 1])
+        lo2, hi2 = min(S[0, 2], S[1, 2]), max(S[0, 2], S[1, 2])
+        if hi0 < origin[0] or lo0 > top[0] or hi1 < origin[1] or lo1 > top[1] or hi2 < origin[2] or lo2 > top[2]:
+            continue
+        i0, i1 = _cell_range(lo0, hi0, origin[0], inv_h, n0)
+        j0, j1 = _cell_range(lo1, hi1, origin[1], inv_h, n1)
+        k0, k1 = _cell_range(lo2, hi2, origin[2], inv_h, n2)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                for k in range(k0, k1 + 1):
+                    c = (i * n1 + j) * n2 + k
+                    for s in range(start[c], start[c + 1]):
+                        f = members[s]
+                        if (boxes[f, 0] > hi0 or boxes[f, 3] < lo0 or boxes[f, 1] > hi1 or boxes[f, 4] < lo1
+                                or boxes[f, 2] > hi2 or boxes[f, 5] < lo2):
+                            continue
+                        if i != max(i0, cells[f, 0]) or j != max(j0, cells[f, 2]) or k != max(k0, cells[f, 4]):
+                            continue
+                        a, b, cc = Fb[f, 0], Fb[f, 1], Fb[f, 2]
+                        if _segment_crosses(S, 0, 1, B, a, b, cc):
+                            count[g] += 1
+                            sp = _orient(B[a, 0], B[a, 1], B[a, 2], B[b, 0], B[b, 1], B[b, 2], B[cc, 0], B[cc, 1], B[cc, 2], S[0, 0], S[0, 1], S[0, 2])
+                            sq = _orient(B[a, 0], B[a, 1], B[a, 2], B[b, 0], B[b, 1], B[b, 2], B[cc, 0], B[cc, 1], B[cc, 2], S[1, 0], S[1, 1], S[1, 2])
+                            t = sp / (sp - sq)
+                            if t < first[g]:
+                                first[g] = t
+    return count, first
+
+
 def layer_intersections(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray) -> np.ndarray:
     """Intersecting (inner, outer) triangle pairs per frame (module doc).
 
@@ -161,6 +222,12 @@ def layer_intersections(inner: np.ndarray, inner_faces: np.ndarray, outer: np.nd
     """
     counts = layer_intersection_faces(inner, inner_faces, outer, outer_faces).sum(1)
     return counts.astype(np.int64)
+
+
+def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Faces of one mesh that cross another face of it (the test above; faces that share a vertex
+    or an edge touch there, which does not count): (T, F) bool for verts (T, V, 3)."""
+    return layer_intersection_faces(verts, faces, verts, faces) > 0
 
 
 def layer_intersection_faces(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray) -> np.ndarray:

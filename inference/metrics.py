@@ -11,8 +11,11 @@ its normal has winding number >= 2 with respect to the body's major components (
 its own part and inside another one); small components (the eyes and teeth, < 10 % of the
 vertices) are ignored. Garment vertices closer than ``exclusion_radius_m`` to such a vertex are
 reported separately ("clean" rates), as the thesis does (ch. 6.6.1).
-Layers: ``layer_violations`` (inner vertices beyond the outer layer) here; the intersecting
-triangle pairs between two layers in ``inference.intersections`` (exact, compiled).
+Layers: ``layer_beyond_pct`` (inner vertices beyond the outer layer: their body-anchor segment
+crosses it, ``inference.layers``; openings have nothing to cross) and ``layer_violations`` (the
+closest outer point's side: it misjudges the gap between the arm and the torso, where the
+nearest outer surface is a sleeve's inner wall, not the layer above the vertex); the
+intersecting triangle pairs between two layers in ``inference.intersections`` (exact, compiled).
 
 Units: metres. Shapes: batch axis first; a frame is one (points, mesh) pair.
 """
@@ -22,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
+from inference.layers import anchor_crossings
 from inference.mesh import major_components, vertex_normals
 from inference.mesh import face_normals
 from inference.winding import check_faces as _faces
@@ -247,6 +251,18 @@ def layer_violation_pct(inner_points: np.ndarray, outer_verts: np.ndarray, outer
         ip, ov = ip.reshape((-1,) + ip.shape[2:]), ov.reshape((-1,) + ov.shape[2:])
     bad, _ = layer_violations(ip, ov, outer_faces, tolerance_m)
     return 100.0 * float(bad.mean()) if bad.size else 0.0
+
+
+def layer_beyond_pct(inner: np.ndarray, anchors: np.ndarray, body: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray) -> float:
+    """100 * #(inner vertex-frames whose body-anchor segment crosses the outer layer an odd number
+    of times) / #inner vertex-frames (``inference.layers.anchor_crossings``).
+
+    inner : (T, N, 3) ; anchors : (N,) body vertex ids (``inference.layers.body_anchors``, or
+    ``DrapeResult.anchors``) ; body : (T, Vb, 3) the posed body ; outer : (T, Vo, 3), outer_faces (Fo, 3)
+    """
+    inner, body = np.asarray(inner), np.asarray(body)
+    count, _ = anchor_crossings(inner, body[:, np.asarray(anchors)], outer, outer_faces)
+    return 100.0 * float((count % 2 == 1).mean()) if count.size else 0.0
 
 
 # ------------------------------------------------------------------------------ realism

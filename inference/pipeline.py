@@ -12,12 +12,16 @@ self-supervised with the SNUG losses):
   ``inference.canonical``); with dynamics 'none' X is the static template, with 'learned'
   X_t = D(R(beta, gamma_1..t)) (ch. 6.4: the regressor into the canonical VAE's latent, and its
   decoder). Collisions: the final exact stage alone (the guard's pushes are for garments in the
-  posed space; a layered outfit keeps them, ch. 7 is not yet in)
+  posed space; a layered outfit keeps its push out of the body)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
 - fit 'none'      : the neutral template, plain LBS
 - dynamics 'learned': + R_L(beta, gamma_1..t) per frame, gamma = motion_descriptor (one ORT call)
 - dynamics 'none'   : no per-frame displacement
+- layers (outfits of more than one garment, with the guard on): the guard pushes each layer out
+  of the body only (layer i with margin + i * layer_gap), then ``inference.layers`` pulls each
+  inner layer back under the layers outside it along its body-anchor segments; the exact repair
+  runs last, on every layer
 - arms (``lift_arms``): the upper arms are abducted out of the torso where the body shape sinks
   them in (``inference.motion.self_contact``); the body and the garments follow that pose
 
@@ -30,6 +34,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blend_skinning
 from inference.canonical import CanonicalModels, default_canonical
@@ -37,6 +42,7 @@ from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, re
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
+from inference.layers import body_anchors, untangle_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -91,6 +97,7 @@ class DrapeResult:
     fps: float
     timings_ms: dict[str, float] = field(default_factory=dict)
     wrinkle_state: list[np.ndarray | None] = field(default_factory=list)  # per garment: the GRU state after the last frame (learned dynamics)
+    anchors: list[np.ndarray] | None = None  # per garment: its vertices' body anchors (layered outfits; inference.layers)
 
 
 class _Timer:
@@ -218,6 +225,7 @@ def drape(
             motion = PoseSequence(lifted, motion.translation, motion.fps)
     with timer("pose"):
         bone_poses, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
+    anchors = None
     body_vertices = None  # the posed body, needed by the guard (exporters pose it themselves)
     if options.guard:
         with timer("body_skin"):
@@ -284,6 +292,7 @@ def drape(
         weights.append(w)
 
     if options.guard:
+        margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
         # the guard's pushes: every posed-space garment, and every layered outfit (its layer pushes)
         if len(garments) > 1 or any(m.fit != "canonical" for m in methods):
             with timer("guard"):
@@ -291,17 +300,24 @@ def drape(
                 # against the neutral body, the pose its skinning transforms start from).
                 rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
                 plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
-                                         layer_weights=weights, body_weights=body.dense_weights, rings=options.guard_check)
+                                         layer_weights=weights, body_weights=body.dense_weights, rings=options.guard_check,
+                                         between_layers=False)
                 posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
             skin = plans.skin
+            if len(garments) > 1:
+                with timer("layers"):  # each inner layer under the ones outside it (inference.layers)
+                    tree = cKDTree(rest_body[0].astype(np.float64))
+                    anchors = [body_anchors(u[0], rest_body[0], tree) for u in unposed_fits]
+                    untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0],
+                                                   options.layer_gap_m, margins)
+                    posed = [u[None] for u in untangled]
         else:
             skin = None
         # last: no garment vertex inside the body (exact winding number); a lone canonical
         # garment has this stage alone at every level but 'off'
         if options.guard_exact or all(m.fit == "canonical" for m in methods):
             with timer("repair"):
-                posed = repair_layers(posed, body_vertices, body.faces, [options.margin_m + i * options.layer_gap_m for i in range(len(posed))],
-                                      skin=skin)[0]
+                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin)[0]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0], method=m) for g, p, m in zip(garments, posed, methods)],
@@ -311,6 +327,7 @@ def drape(
         fps=motion.fps,
         timings_ms=timer.ms,
         wrinkle_state=states,
+        anchors=anchors,
     )
 
 
@@ -328,7 +345,7 @@ def without_root_travel(result: DrapeResult) -> DrapeResult:
         garments=[DrapedGarment(asset=g.asset, vertices=g.vertices - shift[:, None], method=g.method) for g in result.garments],
         shape=result.shape, bone_poses=bones,
         body_vertices=None if result.body_vertices is None else result.body_vertices - shift[:, None],
-        fps=result.fps, timings_ms=result.timings_ms, wrinkle_state=result.wrinkle_state,
+        fps=result.fps, timings_ms=result.timings_ms, wrinkle_state=result.wrinkle_state, anchors=result.anchors,
     )
 
 

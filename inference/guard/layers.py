@@ -73,11 +73,14 @@ class LayerPlans:
         layer_weights: Sequence[np.ndarray] | None = None,
         body_weights: np.ndarray | None = None,
         rings: bool = True,
+        between_layers: bool = True,
     ) -> "LayerPlans":
         """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3);
         layer_weights / body_weights : optional LBS weights (N_i, J) / (Vb, J) for
         skinning-aware body candidates (GuardPlan.build's ``skin``); rings : the body plans keep
-        the triangles of the closest-triangle check (not needed with ``guard_layers(check=False)``)."""
+        the triangles of the closest-triangle check (not needed with ``guard_layers(check=False)``);
+        between_layers : the plans of each layer against the inner ones (False: the layers are
+        guarded against the body only, and ``inference.layers`` orders them)."""
         if len(layers_rest) != len(layer_faces):
             raise InputValueError("layer_faces", f"expected {len(layers_rest)} face arrays, got {len(layer_faces)}")
         body = [
@@ -85,7 +88,8 @@ class LayerPlans:
                             skin=None if layer_weights is None else (layer_weights[i], body_weights), k_skin=2, rings=rings)
             for i, g in enumerate(layers_rest)
         ]
-        inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] for i in range(len(layers_rest))]
+        inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] if between_layers else []
+                 for i in range(len(layers_rest))]
         return cls(body=body, inner=inner, skin=major_components(body_faces, np.shape(body_rest)[-2]))
 
 
@@ -111,7 +115,7 @@ def guard_layers(
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
         p = guard(p, body, plans.body[i], body_margin_m + i * layer_gap_m, iterations=GUARD_ITERATIONS, check=check)
-        for j in range(i):
+        for j in range(len(plans.inner[i])):  # none when the plans were built without between_layers
             p = guard(p, out[j], plans.inner[i][j], layer_gap_m)
         out.append(p)
     return out
