@@ -167,16 +167,29 @@ def intersecting_faces(A, Fa, B, Fb, h):
 
 
 @numba.njit(**_JIT)
-def first_crossings(P, Q, B, Fb, h):
+def first_crossings(P, Q, B, Fb, h, exiting):
     """Segments P[n] -> Q[n] against the triangles Fb of B (module doc's crossing test): the
-    number of triangles each crosses, (N,) int32, and the segment parameter in [0, 1] of its
-    crossing nearest P, (N,) float64 (2.0 where none). P, Q (N, 3), B (Vb, 3) float64; h: cell."""
+    number of triangles each crosses, (N,) int32, the segment parameter in [0, 1] of its crossing
+    nearest P, (N,) float64 (2.0 where none), and that triangle's row in Fb, (N,) int64 (-1).
+    P, Q (N, 3), B (Vb, 3) float64; h: cell; exiting: only the crossings from a triangle's back
+    to its front (P behind its plane: the normal (b - a) x (c - a) points toward Q, out of a
+    layer whose faces wind outward)."""
+    if P.shape[0] == 0 or Fb.shape[0] == 0:
+        return np.zeros(P.shape[0], np.int32), np.full(P.shape[0], 2.0), np.full(P.shape[0], -1, np.int64)
+    return binned_crossings(P, Q, B, Fb, h, _bin_faces(B, Fb, h), exiting)
+
+
+@numba.njit(**_JIT)
+def binned_crossings(P, Q, B, Fb, h, grid, exiting):
+    """``first_crossings`` with the faces already binned: grid = _bin_faces(B, Fb, h) (so that
+    several queries against one frame of a layer share it)."""
+    origin, top, dims, boxes, cells, start, members = grid
     N = P.shape[0]
     count = np.zeros(N, np.int32)
     first = np.full(N, 2.0)
+    face = np.full(N, -1, np.int64)
     if N == 0 or Fb.shape[0] == 0:
-        return count, first
-    origin, top, dims, boxes, cells, start, members = _bin_faces(B, Fb, h)
+        return count, first, face
     n0, n1, n2 = dims[0], dims[1], dims[2]
     inv_h = 1.0 / h
     S = np.empty((2, 3))
@@ -205,13 +218,16 @@ def first_crossings(P, Q, B, Fb, h):
                             continue
                         a, b, cc = Fb[f, 0], Fb[f, 1], Fb[f, 2]
                         if _segment_crosses(S, 0, 1, B, a, b, cc):
-                            count[g] += 1
                             sp = _orient(B[a, 0], B[a, 1], B[a, 2], B[b, 0], B[b, 1], B[b, 2], B[cc, 0], B[cc, 1], B[cc, 2], S[0, 0], S[0, 1], S[0, 2])
+                            if exiting and sp > 0.0:
+                                continue
+                            count[g] += 1
                             sq = _orient(B[a, 0], B[a, 1], B[a, 2], B[b, 0], B[b, 1], B[b, 2], B[cc, 0], B[cc, 1], B[cc, 2], S[1, 0], S[1, 1], S[1, 2])
                             t = sp / (sp - sq)
                             if t < first[g]:
                                 first[g] = t
-    return count, first
+                                face[g] = f
+    return count, first, face
 
 
 def layer_intersections(inner: np.ndarray, inner_faces: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray) -> np.ndarray:

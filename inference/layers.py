@@ -2,33 +2,44 @@
 
 Body anchors. Each garment vertex x is anchored to its nearest vertex a(x) of the shaped body in
 the rest pose (once per request; for a garment whose canonical form moves per frame, its mean
-form). In the rest pose the garments are ordered along these anchors; in each posed frame the
-anchor a_t is the posed body vertex and the garment vertex p_t its own skinning's position, so
-the segment a_t -> p_t runs from the skin out to the vertex through whatever lies between.
+form). In each posed frame the anchor a_t is that posed body vertex and the garment vertex p_t its
+own skinning's position, so the segment a_t -> p_t runs from the skin out to the vertex through
+whatever lies between; its height over the skin is h = (p_t - a_t) . n_t, n_t the body's normal
+at the anchor.
 
 Order test (thesis ch. 7 asks for one that handles the openings; this is the crossing count
 from the body): an inner vertex p_t is beyond an outer layer when its anchor segment crosses the
-outer layer's triangles (``inference.intersections.first_crossings``, exact orientation
-predicates). An opening (neck, cuffs, hem, an open jacket's front) has no triangles to cross,
-so a vertex under it is never counted; a vertex between the arm and the torso is judged against
-the layer between it and its own skin, not against a sleeve that happens to be nearer.
+outer layer's triangles (``inference.intersections``, exact orientation predicates). An opening
+(neck, cuffs, hem, an open jacket's front) has no triangles to cross, so a vertex under it is
+never counted; a vertex between the arm and the torso is judged against the layer between it and
+its own skin, not against a sleeve that happens to be nearer. (The closest outer point's side,
+``metrics.layer_violations``, calls 2-10 % of the T-shirt beyond the jacket on 02_02 whatever
+is done: under the arm the nearest jacket surface is the sleeve's inner wall.)
 
-Untangling (eq. 7.6's split along the anchor segment, with the outer layers held fixed, so the
-inner layer alone gives way; pushing an outer vertex out over an inner layer found within 3 cm past it along its own
-anchor ray left 2-5x fewer intersecting pairs away from the outer layer's self-intersections on
-02_02, but stretched the outer layer: the jacket's longest edge from 8.8x to 17.9x its rest
-length over a T-shirt, its p99 from 1.48 to 1.62): where the
-segment of length L first crosses an outer layer at parameter t, the inner vertex is pulled back
-along it to
+Untangling: eq. 7.6's split along the anchor segments, with the outer layers held fixed, so that
+the inner layer alone gives way. Layers are placed from the outside in (layer N - 2 under layer
+N - 1, then N - 3 under both, ...); for inner layer i, per frame, a sink depth s(v) >= 0 per vertex:
 
-    d = max(t L - gap, min(floor, t L / 2))       (distance from the anchor, metres)
+  (a) an outer vertex o whose anchor ray, continued ``reach`` past o, leaves layer i (crosses one
+      of its faces from back to front: layer i lies just outside o) sinks that face's corners by
+      the crossing's distance past o plus the gap;
+  (b) an inner vertex whose anchor segment crosses an outer layer at parameter t (segment length
+      L) sinks by L (1 - t) + gap: to the gap under it;
+  then s spreads SPREAD_RINGS rings over the inner mesh, times SPREAD_DECAY per ring (a dent's rim
+  slopes instead of stepping), and each vertex moves by s against its anchor direction averaged
+  over its one-ring (RAY_SMOOTHING times: neighbours anchored on different body parts, under the
+  arm, sink in nearly one direction), but never below its floor height (its body margin):
+      p <- p - min(s, (h - floor) / max(r . n, MIN_SINK_COS)) r
+  (c) a moved vertex still beyond an outer layer goes back along its own anchor segment to the gap
+      under it, or, where the outer layer lies within floor + gap of the skin, half-way to it.
 
-``gap`` below the outer layer, but never closer to the skin than ``floor`` (the inner layer's
-body margin) unless the outer layer is itself that close, where it takes the half-way point.
-Layers are handled from the outside in: layer N - 2 against layer N - 1, then layer N - 3
-against both, and so on, each against the layers already placed outside it. After it, no
-anchor segment of an inner vertex crosses an outer layer (the repair of the body, which runs
-last, moves only points inside the body, along its normals).
+Pushing outer vertices out instead (over an inner layer found within 3 cm past them) left 2-5x
+fewer intersecting pairs away from the outer layer's self-intersections on 02_02, but stretched
+the outer layer: the jacket's longest edge from 8.8x to 17.9x its rest length over a T-shirt, its
+p99 from 1.48 to 1.62; (a) gets most of that gain from the inner side. Moving along the raw anchor
+segments instead of the smoothed directions stretched 1.5 % of the T-shirt's edges past 1.5x
+(smoothed: 0.19 %). After the stage, the body's exact repair (which runs last) moves only points
+inside the body, along its normals; a few of those end beyond an outer layer again.
 
 Units: metres. Arrays: float32 in, float32 out, frames (T, N, 3).
 """
@@ -38,11 +49,23 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
-from inference.intersections import CELL_EDGES, first_crossings
+from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
+from inference.mesh import face_normals, vertex_face_incidence
 from inference.winding import check_faces
+
+# How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
+SINK_REACH_M = 0.02
+# A vertex's sink reaches SPREAD_RINGS rings of neighbours, times SPREAD_DECAY per ring.
+SPREAD_RINGS = 2
+SPREAD_DECAY = 0.5
+# Sinking along a direction this oblique to the skin's normal or more counts as this cosine (floor test).
+MIN_SINK_COS = 0.2
+# One-ring averages of the sinking directions (``_smooth_rays``).
+RAY_SMOOTHING = 3
 
 
 def body_anchors(rest_garment: np.ndarray, rest_body: np.ndarray, tree: cKDTree | None = None) -> np.ndarray:
@@ -59,44 +82,127 @@ def body_anchors(rest_garment: np.ndarray, rest_body: np.ndarray, tree: cKDTree 
     return tree.query(np.asarray(rest_garment, np.float64))[1].astype(np.int64)
 
 
-def _cell(verts: np.ndarray, faces: np.ndarray) -> float:
-    edge = np.linalg.norm(verts[faces[:, 1]] - verts[faces[:, 0]], axis=1)
-    return CELL_EDGES * max(float(np.median(edge)), 1e-6)
+class LayerFrames:
+    """One layer's posed frames with its faces binned per frame, once, for every crossing query
+    against it (``inference.intersections._bin_faces``; cell: CELL_EDGES median edge lengths of
+    its first frame)."""
+
+    def __init__(self, verts: np.ndarray, faces: np.ndarray):
+        verts = np.asarray(verts)
+        if verts.ndim != 3 or verts.shape[-1] != 3:
+            raise InputShapeError("outer", "(T, V, 3)", verts.shape)
+        self.faces = np.ascontiguousarray(check_faces(faces, verts.shape[1]))
+        self.verts = np.ascontiguousarray(verts, np.float64)
+        edge = np.linalg.norm(self.verts[0, self.faces[:, 1]] - self.verts[0, self.faces[:, 0]], axis=1) if len(self.faces) else np.ones(1)
+        self.cell = CELL_EDGES * max(float(np.median(edge)), 1e-6)
+        self._grids: dict[int, tuple] = {}
+
+    def grid(self, t: int) -> tuple:
+        if t not in self._grids:
+            self._grids[t] = _bin_faces(self.verts[t], self.faces, self.cell)
+        return self._grids[t]
+
+    def crossings(self, t: int, starts: np.ndarray, ends: np.ndarray, exiting: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame t: ``first_crossings`` of the segments starts -> ends (n, 3) against this layer."""
+        starts, ends = np.ascontiguousarray(starts, np.float64), np.ascontiguousarray(ends, np.float64)
+        if not len(starts) or not len(self.faces):
+            return np.zeros(len(starts), np.int32), np.full(len(starts), 2.0), np.full(len(starts), -1, np.int64)
+        return binned_crossings(starts, ends, self.verts[t], self.faces, self.cell, self.grid(t), exiting)
 
 
-def anchor_crossings(points: np.ndarray, anchors: np.ndarray, outer: np.ndarray, outer_faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame and point: how many outer triangles the segment anchor -> point crosses, and the
-    segment parameter of the crossing nearest the anchor (2.0 where none).
+def anchor_crossings(points: np.ndarray, anchors: np.ndarray, outer: np.ndarray | LayerFrames, outer_faces: np.ndarray | None = None,
+                     exiting: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame and point: how many outer triangles the segment anchor -> point crosses, the
+    segment parameter of the crossing nearest the anchor (2.0 where none) and that triangle's row
+    in outer_faces (-1); ``exiting``: only crossings out of the layer (from a face's back to its
+    front).
 
-    points, anchors : (T, N, 3) ; outer : (T, Vo, 3) ; outer_faces : (Fo, 3)
-    returns (T, N) int32, (T, N) float64
+    points, anchors : (T, N, 3) ; outer : (T, Vo, 3) with outer_faces (Fo, 3), or ``LayerFrames``
+    returns (T, N) int32, (T, N) float64, (T, N) int64
     """
-    points, anchors, outer = np.asarray(points), np.asarray(anchors), np.asarray(outer)
+    points, anchors = np.asarray(points), np.asarray(anchors)
     if points.ndim != 3 or points.shape[-1] != 3:
         raise InputShapeError("points", "(T, N, 3)", points.shape)
     if anchors.shape != points.shape:
         raise InputShapeError("anchors", str(points.shape), anchors.shape)
-    if outer.ndim != 3 or outer.shape[-1] != 3 or outer.shape[0] != points.shape[0]:
-        raise InputShapeError("outer", f"({points.shape[0]}, Vo, 3)", outer.shape)
-    fo = np.ascontiguousarray(check_faces(outer_faces, outer.shape[1]))
+    layer = outer if isinstance(outer, LayerFrames) else LayerFrames(outer, outer_faces)
+    if layer.verts.shape[0] != points.shape[0]:
+        raise InputShapeError("outer", f"({points.shape[0]}, Vo, 3)", layer.verts.shape)
     count = np.zeros(points.shape[:2], np.int32)
     first = np.full(points.shape[:2], 2.0)
-    for t in range(points.shape[0]):  # one kernel call per frame: its grid of the outer layer
-        B = np.ascontiguousarray(outer[t], np.float64)
-        count[t], first[t] = first_crossings(np.ascontiguousarray(anchors[t], np.float64), np.ascontiguousarray(points[t], np.float64),
-                                             B, fo, _cell(B, fo))
-    return count, first
+    face = np.full(points.shape[:2], -1, np.int64)
+    for t in range(points.shape[0]):  # one kernel call per frame, against that frame's grid
+        count[t], first[t], face[t] = layer.crossings(t, anchors[t], points[t], exiting)
+    return count, first, face
 
 
 @dataclass(frozen=True)
 class UntangleReport:
     """What ``untangle_layers`` did: per layer (innermost first; the outermost never moves) the
-    vertex-frames it pulled back under an outer layer and, of those, the ones held at the half-way
-    point (an outer layer closer to the skin than gap + floor); the largest move, metres."""
+    vertex-frames it moved and, of those, the ones held half-way under an outer layer that lies
+    within floor + gap of the skin; the largest move, metres."""
 
     moved: list[int]
-    halfway: list[int]
+    held: list[int]
     max_move_m: float
+
+
+def _spread(sink: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """sink (T, N) spread over the mesh: each vertex takes at least SPREAD_DECAY^k times the sink of
+    a vertex k edges away, k <= SPREAD_RINGS (a dent's rim slopes instead of stepping). Only the
+    nonzero entries spread (a few % of the vertex-frames)."""
+    T, N = sink.shape
+    src, dst = _neighbours(np.asarray(faces), N)
+    start = np.searchsorted(src, np.arange(N + 1))
+    flat = sink.ravel().copy()
+    front = np.flatnonzero(flat)
+    for _ in range(SPREAD_RINGS):
+        frame, v = np.divmod(front, N)
+        deg = start[v + 1] - start[v]
+        rows = np.repeat(np.arange(len(v)), deg)
+        nb = dst[np.repeat(start[v], deg) + (np.arange(deg.sum()) - np.repeat(np.cumsum(deg) - deg, deg))]
+        target = frame[rows] * N + nb
+        value = SPREAD_DECAY * flat[front][rows]
+        grow = value > flat[target]
+        target, value = target[grow], value[grow]
+        np.maximum.at(flat, target, value)
+        front = np.unique(target)
+    return flat.reshape(T, N)
+
+
+def _neighbours(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's directed edges (src, dst), sorted by src."""
+    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    e = np.concatenate([e, e[:, ::-1]])
+    order = np.argsort(e[:, 0], kind="stable")
+    return e[order, 0], e[order, 1]
+
+
+def _smooth_rays(rays: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit anchor rays (T, N, 3) averaged with their one-ring, RAY_SMOOTHING times: neighbours
+    whose anchors lie on different body parts (under the arm) sink in nearly one direction."""
+    n = rays.shape[1]
+    e = np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    A = sp.coo_matrix((np.ones(len(e) * 2), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    A = A + sp.identity(n, format="csr")
+    r = np.moveaxis(rays, 1, 0).reshape(n, -1)  # (N, T * 3)
+    for _ in range(RAY_SMOOTHING):
+        r = A @ r
+    r = np.moveaxis(r.reshape(n, rays.shape[0], 3), 0, 1)
+    return r / np.maximum(np.linalg.norm(r, axis=-1), 1e-12)[..., None]
+
+
+def anchor_normals(body: np.ndarray, body_faces: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """Unit area-weighted normals of the posed body at the anchor vertices: (T, N, 3) float64.
+
+    body : (T, Vb, 3) ; body_faces : (F, 3) ; anchors : (N,) vertex ids (only their faces are used)
+    """
+    ids, inverse = np.unique(anchors, return_inverse=True)
+    face_ids, inc = vertex_face_incidence(body_faces, body.shape[1], ids)
+    fn = face_normals(body, np.asarray(body_faces)[face_ids], unit=False, dtype=np.float64)  # (T, Fs, 3)
+    n = np.stack([(inc @ fn[t]) for t in range(len(fn))])  # (T, S, 3): sparse sums per frame
+    n /= np.maximum(np.linalg.norm(n, axis=-1), 1e-20)[..., None]
+    return n[:, inverse]
 
 
 def untangle_layers(
@@ -104,41 +210,84 @@ def untangle_layers(
     faces: Sequence[np.ndarray],
     anchors: Sequence[np.ndarray],
     body: np.ndarray,
+    body_faces: np.ndarray,
     gap_m: float,
     floors_m: Sequence[float],
+    reach_m: float = SINK_REACH_M,
 ) -> tuple[list[np.ndarray], UntangleReport]:
-    """Pull each inner layer under the layers outside it (module doc).
+    """Sink each inner layer under the layers outside it (module doc).
 
     layers  : each (T, N_i, 3) float32 posed garment, innermost first ; faces : each (F_i, 3)
-    anchors : each (N_i,) int, ``body_anchors`` ; body : (T, Vb, 3) the posed body
-    gap_m   : clearance kept under an outer layer ; floors_m : each layer's least distance to its
-              anchor (its body margin)
+    anchors : each (N_i,) int, ``body_anchors`` ; body : (T, Vb, 3) the posed body, body_faces (F, 3)
+    gap_m   : clearance kept under an outer layer ; floors_m : each layer's least height over the
+              skin at its anchors (its body margin)
+    reach_m : how far past an outer vertex an inner layer is looked for (step (a))
     returns the layers (the outermost unchanged) and an ``UntangleReport``
     """
     if not (len(layers) == len(faces) == len(anchors) == len(floors_m)):
         raise InputShapeError("layers", f"{len(layers)} layers with faces, anchors and floors", (len(faces), len(anchors), len(floors_m)))
     body = np.asarray(body)
     out = [np.asarray(p, np.float32) for p in layers]
-    moved, halfway, max_move = [0] * len(out), [0] * len(out), 0.0
-    # inner vertices beyond an outer layer: pulled back under it, outside in
-    for i in range(len(out) - 2, -1, -1):
-        p = out[i]
-        a = body[:, anchors[i]]  # (T, N, 3) posed anchors
-        seg = p.astype(np.float64) - a
+    moved, held, max_move = [0] * len(out), [0] * len(out), 0.0
+    placed: list[LayerFrames] = []  # the layers outside the current one, binned, outermost first
+    for i in range(len(out) - 2, -1, -1):  # outside in: each layer under those already placed
+        if len(placed) < len(out) - 1 - i:
+            placed.append(LayerFrames(out[i + 1], faces[i + 1]))
+        p = out[i].astype(np.float64)
+        T = p.shape[0]
+        a = body[:, anchors[i]].astype(np.float64)  # (T, N, 3) posed anchors
+        n = anchor_normals(body, body_faces, anchors[i])
+        seg = p - a
         L = np.linalg.norm(seg, axis=-1)
-        t_hit = np.full(p.shape[:2], 2.0)
+        # (a) the outer layers' vertices with this layer just outside them: the corners of the
+        # inner face their ray leaves through sink by its depth there plus the gap
+        sink = np.zeros(p.shape[:2])
+        inner = LayerFrames(p, faces[i])
         for j in range(i + 1, len(out)):
-            t_hit = np.minimum(t_hit, anchor_crossings(p, a, out[j], faces[j])[1])
-        hit = t_hit <= 1.0
-        if not hit.any():
+            used = np.unique(faces[j])  # the outer layer's vertices on its surface
+            o = placed[len(out) - 1 - j].verts[:, used]
+            ray = o - body[:, anchors[j][used]]
+            ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
+            _, t_o, f_o = anchor_crossings(o + ray * reach_m, o, inner, exiting=True)
+            frame, idx = np.nonzero(t_o <= 1.0)
+            corners = faces[i][f_o[frame, idx]]  # (H, 3)
+            np.maximum.at(sink, (np.repeat(frame, 3), corners.ravel()), np.repeat(t_o[frame, idx] * reach_m + gap_m, 3))
+        # (b) its vertices whose anchor segment crosses an outer layer: under it by the gap
+        t_hit = np.full(p.shape[:2], 2.0)
+        for layer in placed:
+            t_hit = np.minimum(t_hit, anchor_crossings(p, a, layer)[1])
+        sink = np.maximum(sink, np.where(t_hit <= 1.0, L * (1.0 - t_hit) + gap_m, 0.0))
+        if not sink.any():
             continue
-        reach = t_hit[hit] * L[hit]  # distance from the anchor to the outer layer along the segment
-        d = np.maximum(reach - gap_m, np.minimum(floors_m[i], 0.5 * reach))
-        new = a[hit] + seg[hit] * (d / np.maximum(L[hit], 1e-12))[:, None]
-        max_move = max(max_move, float(np.linalg.norm(new - p[hit], axis=-1).max()))
-        p = p.copy()
-        p[hit] = new.astype(np.float32)
-        out[i] = p
-        moved[i] = int(hit.sum())
-        halfway[i] = int((reach - gap_m < floors_m[i]).sum())
-    return out, UntangleReport(moved, halfway, max_move)
+        sink = _spread(sink, faces[i])
+        hit = sink > 0
+        ray = _smooth_rays(seg / np.maximum(L, 1e-12)[..., None], faces[i])[hit]
+        # no deeper than the floor: the height (p - a) . n over the skin drops by depth * (ray . n)
+        height = (seg[hit] * n[hit]).sum(-1)
+        cos = np.maximum((ray * n[hit]).sum(-1), MIN_SINK_COS)
+        depth = np.minimum(sink[hit], np.maximum(height - floors_m[i], 0.0) / cos)
+        p[hit] -= ray * depth[:, None]
+        # (c) a moved vertex still beyond an outer layer: back along its own anchor segment, to
+        # the gap under it, or (an outer layer within floor + gap of the skin) half-way to it
+        frame, idx = np.nonzero(hit)
+        t_c = np.full(len(frame), 2.0)
+        bounds = np.searchsorted(frame, np.arange(T + 1))
+        for t in range(T):
+            r = slice(bounds[t], bounds[t + 1])
+            for layer in placed:
+                t_c[r] = np.minimum(t_c[r], layer.crossings(t, a[t, idx[r]], p[t, idx[r]])[1])
+        left = t_c <= 1.0
+        if left.any():
+            f, k = frame[left], idx[left]
+            s = p[f, k] - a[f, k]
+            Ls = np.linalg.norm(s, axis=-1)
+            reach = t_c[left] * Ls
+            up = np.maximum((s * n[f, k]).sum(-1), 1e-9) / np.maximum(Ls, 1e-12)  # height per metre along it
+            d = np.maximum(reach - gap_m, np.minimum(floors_m[i] / up, 0.5 * reach))
+            p[f, k] = a[f, k] + s * (d / np.maximum(Ls, 1e-12))[:, None]
+            held[i] = int((reach - gap_m < floors_m[i] / up).sum())
+        out[i] = p.astype(np.float32)
+        step = np.linalg.norm(out[i] - layers[i], axis=-1)
+        moved[i] = int((step > 0).sum())
+        max_move = max(max_move, float(step.max()))
+    return out, UntangleReport(moved, held, max_move)

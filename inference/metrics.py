@@ -261,7 +261,7 @@ def layer_beyond_pct(inner: np.ndarray, anchors: np.ndarray, body: np.ndarray, o
     ``DrapeResult.anchors``) ; body : (T, Vb, 3) the posed body ; outer : (T, Vo, 3), outer_faces (Fo, 3)
     """
     inner, body = np.asarray(inner), np.asarray(body)
-    count, _ = anchor_crossings(inner, body[:, np.asarray(anchors)], outer, outer_faces)
+    count = anchor_crossings(inner, body[:, np.asarray(anchors)], outer, outer_faces)[0]
     return 100.0 * float((count % 2 == 1).mean()) if count.size else 0.0
 
 

@@ -308,7 +308,7 @@ def drape(
                 with timer("layers"):  # each inner layer under the ones outside it (inference.layers)
                     tree = cKDTree(rest_body[0].astype(np.float64))
                     anchors = [body_anchors(u[0], rest_body[0], tree) for u in unposed_fits]
-                    untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0],
+                    untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0], body.faces,
                                                    options.layer_gap_m, margins)
                     posed = [u[None] for u in untangled]
         else:
