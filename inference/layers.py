@@ -64,6 +64,8 @@ SPREAD_RINGS = 2
 SPREAD_DECAY = 0.5
 # Sinking along a direction this oblique to the skin's normal or more counts as this cosine (floor test).
 MIN_SINK_COS = 0.2
+# Parts of two layers farther apart than this in their rest forms are not tested against each other.
+CONTACT_M = 0.06
 # One-ring averages of the sinking directions (``_smooth_rays``).
 RAY_SMOOTHING = 3
 
@@ -205,6 +207,46 @@ def anchor_normals(body: np.ndarray, body_faces: np.ndarray, anchors: np.ndarray
     return n[:, inverse]
 
 
+@dataclass(frozen=True)
+class LayerContacts:
+    """Where two layers can meet, from their rest forms (once per request): for each pair i < j,
+    the vertices and faces of each that lie within CONTACT_M of the other (a vertex farther than
+    that from every vertex of the other layer). Only these take part in the crossing queries of
+    ``untangle_layers``: posing moves two layers' nearby parts together (the same body parts
+    carry them), and CONTACT_M is 3x the sink reach. The rest of an open jacket's front, or of
+    trousers under a T-shirt, is never tested."""
+
+    inner_vertices: dict[tuple[int, int], np.ndarray]
+    inner_faces: dict[tuple[int, int], np.ndarray]
+    outer_vertices: dict[tuple[int, int], np.ndarray]
+    outer_faces: dict[tuple[int, int], np.ndarray]
+
+    @classmethod
+    def build(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray], radius_m: float = None) -> "LayerContacts":
+        """rest_layers : each (N_i, 3) the layer's rest form ; faces : each (F_i, 3)."""
+        radius_m = CONTACT_M if radius_m is None else radius_m
+        trees = [cKDTree(np.asarray(x, np.float64)) for x in rest_layers]
+        parts: tuple[dict, dict, dict, dict] = ({}, {}, {}, {})
+        for i in range(len(rest_layers)):
+            for j in range(i + 1, len(rest_layers)):
+                for side, (me, other), (v_out, f_out) in ((0, (i, j), (parts[0], parts[1])), (1, (j, i), (parts[2], parts[3]))):
+                    near = np.isfinite(trees[other].query(np.asarray(rest_layers[me], np.float64), distance_upper_bound=radius_m)[0])
+                    used = np.zeros(len(near), bool)
+                    used[np.asarray(faces[me]).ravel()] = True
+                    v_out[i, j] = np.flatnonzero(near & used)
+                    f_out[i, j] = np.flatnonzero(near[np.asarray(faces[me])].any(1))
+        return cls(*parts)
+
+    @classmethod
+    def everywhere(cls, layers: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> "LayerContacts":
+        """Every vertex on a face and every face of each pair (no rest forms: test everything)."""
+        used = [np.unique(np.asarray(f)) for f in faces]
+        rows = [np.arange(len(f)) for f in faces]
+        pairs = [(i, j) for i in range(len(layers)) for j in range(i + 1, len(layers))]
+        return cls({p: used[p[0]] for p in pairs}, {p: rows[p[0]] for p in pairs}, {p: used[p[1]] for p in pairs},
+                   {p: rows[p[1]] for p in pairs})
+
+
 def untangle_layers(
     layers: Sequence[np.ndarray],
     faces: Sequence[np.ndarray],
@@ -213,54 +255,55 @@ def untangle_layers(
     body_faces: np.ndarray,
     gap_m: float,
     floors_m: Sequence[float],
+    contacts: LayerContacts | None = None,
     reach_m: float = SINK_REACH_M,
 ) -> tuple[list[np.ndarray], UntangleReport]:
     """Sink each inner layer under the layers outside it (module doc).
 
-    layers  : each (T, N_i, 3) float32 posed garment, innermost first ; faces : each (F_i, 3)
-    anchors : each (N_i,) int, ``body_anchors`` ; body : (T, Vb, 3) the posed body, body_faces (F, 3)
-    gap_m   : clearance kept under an outer layer ; floors_m : each layer's least height over the
-              skin at its anchors (its body margin)
-    reach_m : how far past an outer vertex an inner layer is looked for (step (a))
+    layers   : each (T, N_i, 3) float32 posed garment, innermost first ; faces : each (F_i, 3)
+    anchors  : each (N_i,) int, ``body_anchors`` ; body : (T, Vb, 3) the posed body, body_faces (F, 3)
+    gap_m    : clearance kept under an outer layer ; floors_m : each layer's least height over the
+               skin at its anchors (its body margin)
+    contacts : where each pair of layers can meet (``LayerContacts.build``); None: everywhere
+    reach_m  : how far past an outer vertex an inner layer is looked for (step (a))
     returns the layers (the outermost unchanged) and an ``UntangleReport``
     """
     if not (len(layers) == len(faces) == len(anchors) == len(floors_m)):
         raise InputShapeError("layers", f"{len(layers)} layers with faces, anchors and floors", (len(faces), len(anchors), len(floors_m)))
     body = np.asarray(body)
     out = [np.asarray(p, np.float32) for p in layers]
+    contacts = contacts or LayerContacts.everywhere(out, faces)
     moved, held, max_move = [0] * len(out), [0] * len(out), 0.0
-    placed: list[LayerFrames] = []  # the layers outside the current one, binned, outermost first
     for i in range(len(out) - 2, -1, -1):  # outside in: each layer under those already placed
-        if len(placed) < len(out) - 1 - i:
-            placed.append(LayerFrames(out[i + 1], faces[i + 1]))
         p = out[i].astype(np.float64)
-        T = p.shape[0]
+        T, N = p.shape[:2]
         a = body[:, anchors[i]].astype(np.float64)  # (T, N, 3) posed anchors
-        n = anchor_normals(body, body_faces, anchors[i])
         seg = p - a
         L = np.linalg.norm(seg, axis=-1)
-        # (a) the outer layers' vertices with this layer just outside them: the corners of the
-        # inner face their ray leaves through sink by its depth there plus the gap
-        sink = np.zeros(p.shape[:2])
-        inner = LayerFrames(p, faces[i])
+        sink = np.zeros((T, N))
+        t_hit = np.full((T, N), 2.0)
+        grids = {}
         for j in range(i + 1, len(out)):
-            used = np.unique(faces[j])  # the outer layer's vertices on its surface
-            o = placed[len(out) - 1 - j].verts[:, used]
-            ray = o - body[:, anchors[j][used]]
+            # (a) the outer layer's vertices with this layer just outside them: the corners of the
+            # inner face their ray leaves through sink by its depth there plus the gap
+            ov, rows = contacts.outer_vertices[i, j], contacts.inner_faces[i, j]
+            o = out[j][:, ov].astype(np.float64)
+            ray = o - body[:, anchors[j][ov]]
             ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
-            _, t_o, f_o = anchor_crossings(o + ray * reach_m, o, inner, exiting=True)
+            _, t_o, f_o = anchor_crossings(o + ray * reach_m, o, LayerFrames(p, faces[i][rows]), exiting=True)
             frame, idx = np.nonzero(t_o <= 1.0)
-            corners = faces[i][f_o[frame, idx]]  # (H, 3)
+            corners = faces[i][rows[f_o[frame, idx]]]  # (H, 3)
             np.maximum.at(sink, (np.repeat(frame, 3), corners.ravel()), np.repeat(t_o[frame, idx] * reach_m + gap_m, 3))
-        # (b) its vertices whose anchor segment crosses an outer layer: under it by the gap
-        t_hit = np.full(p.shape[:2], 2.0)
-        for layer in placed:
-            t_hit = np.minimum(t_hit, anchor_crossings(p, a, layer)[1])
+            # (b) this layer's vertices whose anchor segment crosses the outer layer: the gap under it
+            iv = contacts.inner_vertices[i, j]
+            grids[j] = LayerFrames(out[j], faces[j][contacts.outer_faces[i, j]])
+            t_hit[:, iv] = np.minimum(t_hit[:, iv], anchor_crossings(p[:, iv], a[:, iv], grids[j])[1])
         sink = np.maximum(sink, np.where(t_hit <= 1.0, L * (1.0 - t_hit) + gap_m, 0.0))
         if not sink.any():
             continue
         sink = _spread(sink, faces[i])
         hit = sink > 0
+        n = anchor_normals(body, body_faces, anchors[i])
         ray = _smooth_rays(seg / np.maximum(L, 1e-12)[..., None], faces[i])[hit]
         # no deeper than the floor: the height (p - a) . n over the skin drops by depth * (ray . n)
         height = (seg[hit] * n[hit]).sum(-1)
@@ -274,8 +317,8 @@ def untangle_layers(
         bounds = np.searchsorted(frame, np.arange(T + 1))
         for t in range(T):
             r = slice(bounds[t], bounds[t + 1])
-            for layer in placed:
-                t_c[r] = np.minimum(t_c[r], layer.crossings(t, a[t, idx[r]], p[t, idx[r]])[1])
+            for grid in grids.values():
+                t_c[r] = np.minimum(t_c[r], grid.crossings(t, a[t, idx[r]], p[t, idx[r]])[1])
         left = t_c <= 1.0
         if left.any():
             f, k = frame[left], idx[left]

@@ -42,7 +42,7 @@ from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, re
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.layers import body_anchors, untangle_layers
+from inference.layers import LayerContacts, body_anchors, untangle_layers
 from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -308,8 +308,9 @@ def drape(
                 with timer("layers"):  # each inner layer under the ones outside it (inference.layers)
                     tree = cKDTree(rest_body[0].astype(np.float64))
                     anchors = [body_anchors(u[0], rest_body[0], tree) for u in unposed_fits]
+                    contacts = LayerContacts.build([u[0] for u in unposed_fits], [g.faces for g in garments])
                     untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0], body.faces,
-                                                   options.layer_gap_m, margins)
+                                                   options.layer_gap_m, margins, contacts)
                     posed = [u[None] for u in untangled]
         else:
             skin = None
