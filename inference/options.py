@@ -5,7 +5,8 @@
 
     off    nothing: the skinned garments as they are
     push   the guard's push out of the body along the nearest body vertex's normal, layer by
-           layer (``inference.guard``)
+           layer (``inference.guard``); an outfit's layer stage after it (``inference.layers``:
+           each inner garment under the ones outside it)
     check  push, then every nearby vertex checked against the closest body triangle and moved
            out where it is still inside (up to ~4x fewer vertices left inside; ~3-4 ms per
            garment-frame)
@@ -67,7 +68,8 @@ class DrapeOptions(BaseModel):
     collisions: Collisions = Field(
         "exact",
         description="collision handling after skinning, each level adding a stage: 'off' none; 'push' the guard's push out "
-        "of the body along the nearest body vertex's normal, layer by layer; 'check' the push, then each nearby vertex "
+        "of the body along the nearest body vertex's normal, layer by layer (an outfit of several garments then has each "
+        "inner garment sink under the ones outside it); 'check' the push, then each nearby vertex "
         "checked against the closest body triangle (up to ~4x fewer vertices left inside, ~3-4 ms per garment-frame); "
         "'exact' (default) the check, then the exact winding-number test of every vertex against the posed body, moving "
         "any still inside to the nearest outside skin point (~7 ms per garment-frame): no vertex inside the body. "
