@@ -213,8 +213,9 @@ class LayerContacts:
     the vertices and faces of each that lie within CONTACT_M of the other (a vertex farther than
     that from every vertex of the other layer). Only these take part in the crossing queries of
     ``untangle_layers``: posing moves two layers' nearby parts together (the same body parts
-    carry them), and CONTACT_M is 3x the sink reach. The rest of an open jacket's front, or of
-    trousers under a T-shirt, is never tested."""
+    carry them), and CONTACT_M is 3x the sink reach and 4x a garment's edge (nearness is judged at
+    vertices: the radius must exceed the edges, and the depth of any tangle). The rest of an open jacket's front, or of trousers
+    under a T-shirt, is never tested."""
 
     inner_vertices: dict[tuple[int, int], np.ndarray]
     inner_faces: dict[tuple[int, int], np.ndarray]
@@ -222,7 +223,7 @@ class LayerContacts:
     outer_faces: dict[tuple[int, int], np.ndarray]
 
     @classmethod
-    def build(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray], radius_m: float = None) -> "LayerContacts":
+    def build(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray], radius_m: float | None = None) -> "LayerContacts":
         """rest_layers : each (N_i, 3) the layer's rest form ; faces : each (F_i, 3)."""
         radius_m = CONTACT_M if radius_m is None else radius_m
         trees = [cKDTree(np.asarray(x, np.float64)) for x in rest_layers]

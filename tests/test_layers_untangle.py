@@ -9,7 +9,7 @@ import scipy.sparse as sp
 import trimesh
 
 from inference.intersections import first_crossings
-from inference.layers import SPREAD_RINGS, anchor_crossings, body_anchors, untangle_layers
+from inference.layers import SPREAD_RINGS, LayerContacts, anchor_crossings, body_anchors, untangle_layers
 from inference.metrics import layer_beyond_pct
 
 GAP, FLOOR = 0.003, 0.002
@@ -117,3 +117,24 @@ def test_untangle_checks_its_inputs(spheres):
         untangle_layers([inner[None], outer[None]], [F], [np.arange(len(body))] * 2, body[None], F, GAP, [FLOOR, FLOOR])
     with pytest.raises(ValueError):
         anchor_crossings(inner[None], body[None, :10], outer[None], F)
+
+
+def test_contacts_leave_out_only_parts_that_cannot_meet():
+    # the fixture's spheres, finer (edges ~3 cm: contacts are judged at vertices, so the radius
+    # must exceed an edge)
+    s = trimesh.creation.icosphere(5)
+    unit, F = np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int64)
+    body, outer, inner = 0.5 * unit, 1.0 * unit, 0.9 * unit
+    bulge = unit[:, 2] > 0.8  # up to 3 cm through the outer layer
+    inner[bulge] = unit[bulge] * (0.9 + 0.13 * (unit[bulge, 2:3] - 0.8) / 0.2)
+    anchors = body_anchors(inner, body)
+    # 5 cm: of the inner sphere (10 cm under the outer one) only the bulge is near it
+    contacts = LayerContacts.build([inner, outer], [F, F], radius_m=0.05)
+    near = contacts.inner_vertices[0, 1]
+    assert 0 < len(near) < len(inner) / 4 and bulge[near].mean() > 0.5
+    assert len(contacts.outer_faces[0, 1]) < len(F) / 4
+    args = ([inner[None], outer[None]], [F, F], [anchors, anchors], body[None], F, GAP, [FLOOR, FLOOR + GAP])
+    (u_near, _), _ = untangle_layers(*args, contacts)
+    (u_all, _), _ = untangle_layers(*args)
+    np.testing.assert_array_equal(u_near, u_all)
+    assert not np.array_equal(u_all, inner[None])
