@@ -50,6 +50,7 @@ MODEL_VERSIONS = {
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.collisions 'check' and 'exact')
     "guard_plain": "plane-push-v3",  # options.collisions 'push': the push alone (v3: farther limbs)
     "repair": "winding-repair-v1",  # options.collisions 'exact', the default (inference/repair.py)
+    "layers": "anchor-sink-v1",  # outfits of several garments, collisions not 'off' (inference/layers.py)
     "arms": "shoulder-lift-v2",  # options.lift_arms, the default (inference/motion/self_contact.py); v2: 10 mm clearance
 }
 
@@ -69,7 +70,8 @@ def used_model_versions(options, methods: Mapping[str, Method]) -> dict[str, str
             "dynamics": {gid: MODEL_VERSIONS["canonical_dynamics"] if (m.fit, m.dynamics) == ("canonical", "learned") else dynamics[m.dynamics]
                          for gid, m in methods.items()},
             "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard and guard else "none",
-            "repair": MODEL_VERSIONS["repair"] if options.guard and (options.guard_exact or canonical) else "none"}
+            "repair": MODEL_VERSIONS["repair"] if options.guard and (options.guard_exact or canonical) else "none",
+            "layers": MODEL_VERSIONS["layers"] if options.guard and len(methods) > 1 else "none"}
 
 
 @dataclass(frozen=True)

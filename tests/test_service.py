@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from service.runtime import MODEL_VERSIONS
 from tests.conftest import REPO_ROOT, validate_glb
 
 WALK_TSHIRT = {
@@ -263,6 +264,12 @@ def test_drape_metadata_names_each_garments_method(client):
     extras = [n["extras"] for n in gltf["nodes"] if "fit" in n.get("extras", {})]
     assert len(extras) == 2 and all((e["fit"], e["dynamics"]) == ("retarget", "none") for e in extras)
     assert gltf["asset"]["extras"]["model_versions"]["fit"] == {"tshirt": "mhclo-retarget", "trousers": "mhclo-retarget"}
+    # the layer stage that ordered the outfit: none with collisions off, inference.layers' otherwise
+    assert meta["model_versions"]["layers"] == "none" and gltf["asset"]["extras"]["model_versions"]["layers"] == "none"
+    r = client.post("/v1/drape", json={**body, "format": "npz", "options": {"include_body": False}})
+    assert r.status_code == 200, r.text
+    meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
+    assert meta["model_versions"]["layers"] == MODEL_VERSIONS["layers"]
 
 
 def _copy_defaults(tmp_path, **changes):
@@ -282,7 +289,7 @@ def test_a_changed_defaults_file_changes_the_catalog_and_the_drape(tmp_path, set
 
     from inference.defaults import DefaultMethods
     from service.app import create_app
-    from service.runtime import MODEL_VERSIONS, Runtime
+    from service.runtime import Runtime
 
     baseline = {"fit": "retarget", "dynamics": "none", "reason": "the baseline wins (test)", "evidence": "docs/evaluation.md"}
     path = _copy_defaults(tmp_path, tshirt=baseline, trousers={"fit": "learned", "dynamics": "learned"})
