@@ -4,7 +4,7 @@ import pytest
 import trimesh
 
 from inference.errors import InputShapeError
-from inference.intersections import layer_intersection_faces, layer_intersections
+from inference.intersections import layer_intersection_faces, layer_intersections, self_intersecting_faces
 
 
 def _sphere(radius=1.0, centre=(0.0, 0.0, 0.0), subdivisions=2):
@@ -59,3 +59,18 @@ def test_shapes_are_checked():
         layer_intersections(a[None], fa, np.stack([a, a]), fa)
     with pytest.raises(InputShapeError):
         layer_intersections(a[None], fa + len(a), a[None], fa)
+
+
+def test_self_intersecting_faces_are_where_a_mesh_passes_through_itself():
+    V, F = _sphere(subdivisions=2)
+    assert not self_intersecting_faces(V[None], F).any()  # a closed sphere: neighbours only touch
+    # two spheres in one mesh, overlapping (not mirror images: those meet in exactly coplanar spots)
+    W, G = _sphere(radius=0.9, centre=(0.3, 0.1, 0.05), subdivisions=2)
+    both = np.concatenate([V, W])[None]
+    faces = np.concatenate([F, G + len(V)])
+    hit = self_intersecting_faces(both, faces)[0]
+    assert hit[:len(F)].any() and hit[len(F):].any()
+    centres = both[0][faces[hit]].mean(1)
+    # along the circle where the two surfaces meet: near both (an edge is ~0.3 long here)
+    assert np.abs(np.linalg.norm(centres, axis=1) - 1.0).max() < 0.2
+    assert np.abs(np.linalg.norm(centres - (0.3, 0.1, 0.05), axis=1) - 0.9).max() < 0.2
