@@ -271,7 +271,7 @@ def drape(
             with timer("skin"):  # eq. 6.7 with W~ and B~s at every frame's own points
                 offsets = d.offsets(shape.rest_vertices[0])
                 posed.append(d.pose(X, offsets, transforms[0])[None])
-            if len(garments) > 1:  # the layer pushes plan on the sequence's mean canonical form
+            if len(garments) > 1:  # the guard and the layer stage plan on the sequence's mean canonical form
                 with timer("fit"):
                     Xm = X.mean(0)
                     unposed_fits.append(d.deshaped_to_shaped(Xm, offsets)[None])
@@ -293,7 +293,7 @@ def drape(
 
     if options.guard:
         margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
-        # the guard's pushes: every posed-space garment, and every layered outfit (its layer pushes)
+        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights)
         if len(garments) > 1 or any(m.fit != "canonical" for m in methods):
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
