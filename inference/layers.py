@@ -95,7 +95,8 @@ class LayerFrames:
         verts = np.asarray(verts)
         if verts.ndim != 3 or verts.shape[-1] != 3:
             raise InputShapeError("outer", "(T, V, 3)", verts.shape)
-        self.faces = np.ascontiguousarray(check_faces(faces, verts.shape[1]))
+        faces = np.asarray(faces)
+        self.faces = np.ascontiguousarray(check_faces(faces, verts.shape[1]) if len(faces) else np.zeros((0, 3), np.int64))
         self.verts = np.ascontiguousarray(verts, np.float64)
         edge = np.linalg.norm(self.verts[0, self.faces[:, 1]] - self.verts[0, self.faces[:, 0]], axis=1) if len(self.faces) else np.ones(1)
         self.cell = CELL_EDGES * max(float(np.median(edge)), 1e-6)
@@ -287,6 +288,10 @@ def untangle_layers(
             # (a) the outer layer's vertices with this layer just outside them: the corners of the
             # inner face their ray leaves through sink by its depth there plus the gap
             ov, rows = contacts.outer_vertices[i, j], contacts.inner_faces[i, j]
+            if not (len(ov) and len(rows)):  # the two layers never come near each other
+                grids[j] = LayerFrames(out[j], faces[j])
+                t_hit = np.minimum(t_hit, anchor_crossings(p, a, grids[j])[1])
+                continue
             o = out[j][:, ov].astype(np.float64)
             ray = o - body[:, anchors[j][ov]]
             ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
@@ -334,3 +339,11 @@ def untangle_layers(
         moved[i] = int((step > 0).sum())
         max_move = max(max_move, float(step.max()))
     return out, UntangleReport(moved, held, max_move)
+
+
+def warm_up() -> None:
+    """Compile the crossing kernels (or load them from numba's cache) on a tetrahedron, through the
+    same conversions as a request, so that no outfit pays the seconds of a first compilation."""
+    tet = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]], np.float32)
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    anchor_crossings(np.full((1, 1, 3), 0.1, np.float32), np.full((1, 1, 3), 2.0, np.float32), LayerFrames(tet, faces), exiting=True)

@@ -64,3 +64,20 @@ def test_the_t_shirt_stays_under_the_jacket(layered):
         assert "layers" in result.timings_ms and len(result.anchors) == 2
         beyond = layer_beyond_pct(t.vertices, result.anchors[0], result.body_vertices, j.vertices, j.asset.faces)
         assert beyond <= (0.0 if result is unrepaired else 0.5), beyond
+
+
+def test_an_outfit_whose_layers_never_meet(runtime):
+    """Leggings under a crop top: no part of one is near the other (``LayerContacts`` is empty);
+    the layer stage still runs its order test and moves nothing."""
+    body, catalog = runtime.body, runtime.catalog
+    shape = body.shape(HEAVY)
+    rotations, translation = adapt_clip(runtime.clips.load("dance"), body, shape)
+    motion = PoseSequence(np.ascontiguousarray(rotations[0, :2]), np.ascontiguousarray(translation[0, :2]), 30.0)
+    assets = [catalog.get("leggings"), catalog.get("croptop")]
+    options = DrapeOptions(fit="retarget", dynamics="none", collisions="check")  # the same guard for the leggings alone
+    result = drape(body, shape, motion, assets, options, neutral=runtime.neutral_shape)
+    alone = drape(body, shape, motion, assets[:1], options, neutral=runtime.neutral_shape)
+    assert "layers" in result.timings_ms
+    legs, top = result.garments
+    assert layer_beyond_pct(legs.vertices, result.anchors[0], result.body_vertices, top.vertices, top.asset.faces) == 0.0
+    np.testing.assert_allclose(legs.vertices, alone.garments[0].vertices, atol=1e-6)
