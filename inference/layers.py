@@ -286,19 +286,17 @@ def untangle_layers(
         grids = {}
         for j in range(i + 1, len(out)):
             # (a) the outer layer's vertices with this layer just outside them: the corners of the
-            # inner face their ray leaves through sink by its depth there plus the gap
+            # inner face their ray leaves through sink by its depth there plus the gap (none where
+            # the two layers never come near each other)
             ov, rows = contacts.outer_vertices[i, j], contacts.inner_faces[i, j]
-            if not (len(ov) and len(rows)):  # the two layers never come near each other
-                grids[j] = LayerFrames(out[j], faces[j])
-                t_hit = np.minimum(t_hit, anchor_crossings(p, a, grids[j])[1])
-                continue
-            o = out[j][:, ov].astype(np.float64)
-            ray = o - body[:, anchors[j][ov]]
-            ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
-            _, t_o, f_o = anchor_crossings(o + ray * reach_m, o, LayerFrames(p, faces[i][rows]), exiting=True)
-            frame, idx = np.nonzero(t_o <= 1.0)
-            corners = faces[i][rows[f_o[frame, idx]]]  # (H, 3)
-            np.maximum.at(sink, (np.repeat(frame, 3), corners.ravel()), np.repeat(t_o[frame, idx] * reach_m + gap_m, 3))
+            if len(ov) and len(rows):
+                o = out[j][:, ov].astype(np.float64)
+                ray = o - body[:, anchors[j][ov]]
+                ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
+                _, t_o, f_o = anchor_crossings(o + ray * reach_m, o, LayerFrames(p, faces[i][rows]), exiting=True)
+                frame, idx = np.nonzero(t_o <= 1.0)
+                corners = faces[i][rows[f_o[frame, idx]]]  # (H, 3)
+                np.maximum.at(sink, (np.repeat(frame, 3), corners.ravel()), np.repeat(t_o[frame, idx] * reach_m + gap_m, 3))
             # (b) this layer's vertices whose anchor segment crosses the outer layer: the gap under
             # it (every vertex against every face: this is the order the stage guarantees)
             grids[j] = LayerFrames(out[j], faces[j])
