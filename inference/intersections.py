@@ -182,7 +182,9 @@ def first_crossings(P, Q, B, Fb, h, exiting):
 @numba.njit(**_JIT)
 def binned_crossings(P, Q, B, Fb, h, grid, exiting):
     """``first_crossings`` with the faces already binned: grid = _bin_faces(B, Fb, h) (so that
-    several queries against one frame of a layer share it)."""
+    several queries against one frame of a layer share it). The cell walk is written out as in
+    ``intersecting_faces`` rather than shared: a shared candidate list (a helper filling a buffer)
+    made this query 1.6-2x slower (0.83 -> 1.3-1.8 ms for 5,148 segments against the jacket)."""
     origin, top, dims, boxes, cells, start, members = grid
     N = P.shape[0]
     count = np.zeros(N, np.int32)
