@@ -94,6 +94,7 @@ def split_result(result: DrapeResult, motions: list[PoseSequence]) -> list[Drape
             fps=m.fps,
             # each member is charged its share of the batch's time
             timings_ms={k: v * m.num_frames / len(result.bone_poses) for k, v in result.timings_ms.items()},
+            anchors=result.anchors,
         ))
         start = stop
     return out
@@ -117,4 +118,5 @@ def concatenate_results(results: list[DrapeResult], fps: float) -> DrapeResult:
         fps=fps,
         timings_ms=timings,
         wrinkle_state=results[-1].wrinkle_state,
+        anchors=first.anchors,
     )

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from inference.batch import concatenate_results, split_result
 from inference.metrics import inside_mask, layer_beyond_pct, signed_distance
 from inference.motion.clips import adapt_clip
 from inference.pipeline import DrapeOptions, PoseSequence, drape
@@ -81,3 +82,16 @@ def test_an_outfit_whose_layers_never_meet(runtime):
     legs, top = result.garments
     assert layer_beyond_pct(legs.vertices, result.anchors[0], result.body_vertices, top.vertices, top.asset.faces) == 0.0
     np.testing.assert_allclose(legs.vertices, alone.garments[0].vertices, atol=1e-6)
+
+
+def test_batched_and_chunked_results_keep_the_anchors(layered):
+    """``DrapeResult.anchors`` (per garment, the same for every frame) survive the split of a
+    cross-request batch and the join of a long request's chunks."""
+    _, full, _, _ = layered
+    T = len(full.bone_poses)
+    motions = [PoseSequence(np.zeros((n, 1, 3), np.float32), np.zeros((n, 3), np.float32), 2.0) for n in (T // 2, T - T // 2)]
+    parts = split_result(full, motions)
+    joined = concatenate_results(parts, full.fps)
+    for r in (*parts, joined):
+        assert r.anchors is not None and all(np.array_equal(a, b) for a, b in zip(r.anchors, full.anchors))
+    np.testing.assert_array_equal(joined.garments[0].vertices, full.garments[0].vertices)
