@@ -29,7 +29,7 @@ from service.schemas import DrapeRequest  # noqa: E402
 
 
 MODES = {"learned": {"fit": "learned", "dynamics": "learned"}, "retarget": {"fit": "retarget", "dynamics": "none"}}
-STAGES = ("shape", "arms", "pose", "body_skin", "models", "descriptor", "fit", "dynamics", "skin", "guard", "repair")
+STAGES = ("shape", "arms", "pose", "body_skin", "models", "descriptor", "fit", "dynamics", "skin", "strain", "guard", "repair")
 
 
 def request(frames: int, fmt: str, garments=("tshirt",), include_body: bool = True, mode: str = "learned") -> dict:

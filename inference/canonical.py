@@ -20,7 +20,9 @@ Two forms of X:
 - learned (dynamics 'learned', thesis ch. 6.4): X_t = D(R(beta, gamma_1..t)), the regressor R
   into the latent of the garment's canonical VAE and its decoder D (``CanonicalGarment``: two
   ONNX models, a whole sequence in one call each, the GRU state in and out), pushed out to the
-  margin; W~ and B~s are read at every frame's own points (eq. 6.7).
+  margin; W~ and B~s are read at every frame's own points (eq. 6.7); once posed, its shortest
+  edges are pushed back to 0.8 of their rest length (``inference.strain``: the decoder's smooth
+  basis compresses the short edges under the arms).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -39,6 +41,7 @@ from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.learned import MODELS_DIR, MissingModelError, ort_session
+from inference.strain import CompressionLimit
 
 MODEL_FILE = "canonical.json"  # in assets/models/<garment>/, next to the ONNX files it names
 
@@ -143,6 +146,7 @@ class CanonicalModels:
         self._diffused: DiffusedBody | None = None
         self._templates: dict[str, tuple[np.ndarray, np.ndarray, scipy.sparse.csr_matrix]] = {}
         self._learned: dict[str, CanonicalGarment] = {}
+        self._limits: dict[str, CompressionLimit] = {}
         self._lock = threading.Lock()
 
     @property
@@ -178,6 +182,13 @@ class CanonicalModels:
         if v.shape != d.neutral_vertices.shape:
             raise InputShapeError("rest_vertices", str(d.neutral_vertices.shape), v.shape)
         return (X + S @ (v - d.neutral_vertices)).astype(np.float32), W
+
+    def compression_limit(self, garment: GarmentAsset) -> CompressionLimit:
+        """The garment's compression limit (``inference.strain``) on its rest lengths, once per garment."""
+        with self._lock:
+            if garment.id not in self._limits:
+                self._limits[garment.id] = CompressionLimit.from_mesh(garment.rest_vertices, garment.edges)
+            return self._limits[garment.id]
 
     def available(self, garment_id: str) -> bool:
         """Whether the garment ships a learned canonical model (without loading it)."""

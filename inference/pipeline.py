@@ -270,7 +270,9 @@ def drape(
                 states.append(h_t)
             with timer("skin"):  # eq. 6.7 with W~ and B~s at every frame's own points
                 offsets = d.offsets(shape.rest_vertices[0])
-                posed.append(d.pose(X, offsets, transforms[0])[None])
+                frames = d.pose(X, offsets, transforms[0])
+            with timer("strain"):  # the decoded garment's shortest edges back to 0.8 of their rest length
+                posed.append(canonical.compression_limit(g)(frames)[None])
             if len(garments) > 1:  # the guard and the layer stage plan on the sequence's mean canonical form
                 with timer("fit"):
                     Xm = X.mean(0)

@@ -36,7 +36,7 @@ from service.schemas import DrapeRequest
 
 log = logging.getLogger(__name__)
 
-STAGE_MODELS = {"shape": "body", "arms": "arms", "pose": "body", "body_skin": "body", "fit": "fit", "dynamics": "dynamics", "skin": "body", "guard": "guard", "repair": "repair", "layers": "layers"}
+STAGE_MODELS = {"shape": "body", "arms": "arms", "pose": "body", "body_skin": "body", "fit": "fit", "dynamics": "dynamics", "skin": "body", "strain": "dynamics", "guard": "guard", "repair": "repair", "layers": "layers"}
 
 
 class WorkerCrashed(Exception):

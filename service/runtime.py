@@ -43,7 +43,7 @@ MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
     "canonical": "diffused-canonical-v1",  # fit 'canonical': the diffused body (assets/body/diffused.npz), thesis ch. 6
-    "canonical_dynamics": "canonical-vae-gru-v1",  # fit 'canonical' + dynamics 'learned': regressor + VAE decoder (canonical.json)
+    "canonical_dynamics": "canonical-vae-gru-v2",  # fit 'canonical' + dynamics 'learned': regressor + VAE decoder (canonical.json); v2: + the compression limit (inference/strain.py)
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)
     "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)

@@ -411,9 +411,10 @@ def _row_key(case: Case, garment: str, reference_dir: Path) -> str:
     import inference.diffused
     import inference.pipeline
     import inference.repair
+    import inference.strain
 
     h = hashlib.sha256(Path(inspect.getsourcefile(realism)).read_bytes())
-    for module in (inference.pipeline, inference.repair, inference.canonical, inference.diffused):  # what the methods run
+    for module in (inference.pipeline, inference.repair, inference.canonical, inference.diffused, inference.strain):  # what the methods run
         h.update(Path(inspect.getsourcefile(module)).read_bytes())
     for fn in (judge_case, realism_failures, worse_on_realism, slid_pct, carried_vertices, mean_error_cm, _energies, _collisions):
         h.update(inspect.getsource(fn).encode())

@@ -10,7 +10,8 @@ Steps (each cached under ``build/``):
 4. the regressor into its latent (``training.canonical_regressor``, eq. 6.17-6.18);
 5. the judge's numbers (``training.judge``) on the validation cases, where choices are made, and
    on the test cases, reported only: the posed garment M_G(D(R(beta, gamma)), beta, theta)
-   (eq. 6.7) against the newton reference of the same case: mean vertex error (cm), realism,
+   (eq. 6.7, then the runtime's compression limit, ``inference.strain``) against the newton
+   reference of the same case: mean vertex error (cm), realism,
    collisions before and after the final exact stage (``inference.repair.exact_repair``) and its
    moves; the same for the template through eq. 6.7 (the diffused skinning alone), and the
    judge's cached baseline rows for comparison.
@@ -38,6 +39,7 @@ from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
 from inference.motion.descriptor import motion_descriptor
+from inference.strain import CompressionLimit
 from training.canonical_regressor import RegressorConfig, export_regressor, train_regressor
 from training.canonical_vae import VAEConfig, export_decoder, load_canonical, metadata_record, train_vae
 from training.datasets import REPO_ROOT, TRAIN_CLIPS
@@ -206,6 +208,7 @@ def main(argv: list[str] | None = None) -> None:
 
     # 5: scores against newton: validation (where choices are made) and test (reported only)
     rows = []
+    limit = CompressionLimit.from_mesh(asset.rest_vertices, asset.edges)
     with torch.no_grad():
         z_template = vae.encode(torch.as_tensor(asset.vertices[None].astype(np.float32)))[0]
     for split in ("validation", "test"):
@@ -222,7 +225,7 @@ def main(argv: list[str] | None = None) -> None:
                 z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
                 X = vae.decoder(z[0]).numpy()
                 X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
-            posed = posed_frames(canonical, X, inp["transforms"])
+            posed = limit(posed_frames(canonical, X, inp["transforms"]))  # as the runtime (inference.canonical)
             judged = judged_row(args.garment, case)
             model_score, after = score(posed, target, body_frames, body.faces, asset, judged)
             # for ``python -m training.contact_sheet --garment G --vertices <file>``: before and after the final stage
