@@ -8,7 +8,8 @@ kernels (once per body), W~ and B~s at the garment's canonical points (once per 
 static X), the skinning per frame, and the final exact stage; then eq. 6.7 with the fields read
 at every frame's own points (``DiffusedBody.pose``: what a per-frame canonical X costs, here X
 plus a 1 cm ripple per frame). With ``--model-dir`` (``training.train_canonical``'s output:
-canonical_regressor.onnx, canonical_decoder.onnx) also the regressor and the decoder.
+canonical_regressor.onnx, canonical_decoder.onnx) also the regressor, the decoder and the
+compression limit after eq. 6.7 (``inference.strain``).
 Prints a markdown table: best-of-``--repeats`` ms per request and per garment-frame.
 """
 from __future__ import annotations
@@ -98,6 +99,9 @@ def main() -> None:
         rows.append(("learned X_t: B~s(., beta) contracted at the nodes (once per body)", ms))
         ms, posed_t = best(lambda: d.pose(Xt, off, transforms[0]), args.repeats)
         rows.append(("learned X_t: eq. 6.7, W~ and B~s at each frame's points", ms))
+        limit = canonical.compression_limit(asset)
+        ms, posed_t = best(lambda: limit(posed_t), args.repeats)
+        rows.append(("learned X_t: compression limit (inference.strain)", ms))
         ms, _ = best(lambda: exact_repair(posed_t[None], body_frames, body.faces, margin_m), args.repeats)
         rows.append(("learned X_t: final exact stage", ms))
     print(f"{args.garment}, {T} frames, {asset.num_vertices} vertices, heavy body, one thread\n")
@@ -107,7 +111,7 @@ def main() -> None:
     print(f"| **total, static X** (its three rows) | {static:.2f} | {static / T:.3f} |")
     if model_dir is not None:
         learned = sum(r[1] for r in rows[3:])
-        print(f"| **total, learned X_t** (its six rows) | {learned:.2f} | {learned / T:.3f} |")
+        print(f"| **total, learned X_t** (its seven rows) | {learned:.2f} | {learned / T:.3f} |")
 
 
 if __name__ == "__main__":

@@ -85,8 +85,9 @@ def test_drape_npz_arrays(client):
 
     meta = json.loads(str(data["metadata"]))
     assert [g["name"] for g in meta["garments"]] == ["tshirt"] and "metres" in meta["units"]
-    # the garment moves over time (walk) and follows the body
-    assert np.abs(v[-1] - v[0]).max() > 0.05
+    # the garment moves over time (walk; frames 0 and 30 are near the same phase of the stride,
+    # so any frame against the first)
+    assert np.abs(v - v[0]).max() > 0.05
 
 
 def test_drape_changes_with_shape(client):
@@ -256,7 +257,8 @@ def test_drape_metadata_names_each_garments_method(client):
         d = defaults[g["name"]]
         assert (g["fit"], g["dynamics"]) == (d["fit"], d["dynamics"])
         assert meta["model_versions"]["fit"][g["name"]].startswith(versions[d["fit"]])
-        assert meta["model_versions"]["dynamics"][g["name"]].startswith(versions[d["dynamics"]])
+        dynamics = "canonical-vae-gru" if (d["fit"], d["dynamics"]) == ("canonical", "learned") else versions[d["dynamics"]]
+        assert meta["model_versions"]["dynamics"][g["name"]].startswith(dynamics)
     # an explicit option is what every garment ran, in the glb too (each garment's node and asset.extras)
     r = client.post("/v1/drape", json={**body, "format": "glb", "options": {**body["options"], "fit": "retarget", "dynamics": "none"}})
     assert r.status_code == 200, r.text
