@@ -31,9 +31,10 @@ import numpy as np
 from inference.strain_kernels import limit_in_place
 
 # The shortest an edge may stay, as a share of its rest length, and the Jacobi iterations.
-# Chosen on the validation walk (02_02[30:50], neutral and heavy bodies; the learned canonical
-# T-shirt): edge p1 0.64 -> 0.76 and 0.59 -> 0.75 with 5 iterations at 0.8; 0.9 or 20
-# iterations raise it further but fold more faces (+0.9 and +1.3 points against +0.4).
+# Chosen on the validation walk (02_02[30:50], neutral / heavy body; the learned canonical
+# T-shirt, before the final exact stage): 5 iterations at 0.8 take edge p1 from 0.64 / 0.59 to
+# 0.76 / 0.75 and fold +0.4 / +0.6 points of faces; 0.9 raises p1 further but folds more
+# (+0.9 / +1.3 points with 10 iterations, +1.1 / +1.6 with 20).
 MIN_RATIO = 0.8
 ITERATIONS = 5
 

@@ -16,13 +16,11 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 
 @numba.njit(**_JIT)
 def limit_in_place(X, edges, rest, ratio, iterations):
-    """X (B, V, 3) float32, moved in place; edges (E, 2) int64; rest (E,) float32; the number
-    of edges moved in the first iteration, over all frames."""
+    """X (B, V, 3) float32, moved in place; edges (E, 2) int64; rest (E,) float32."""
     B, V = X.shape[0], X.shape[1]
     E = edges.shape[0]
     move = np.zeros((V, 3), np.float64)
     count = np.zeros(V, np.int64)
-    first = 0
     for b in range(B):
         for it in range(iterations):
             move[:] = 0.0
@@ -46,12 +44,9 @@ def limit_in_place(X, edges, rest, ratio, iterations):
                     count[i] += 1
                     count[j] += 1
                     active += 1
-            if it == 0:
-                first += active
             if active == 0:
                 break
             for v in range(V):
                 if count[v] > 0:
                     for k in range(3):
                         X[b, v, k] = np.float32(X[b, v, k] + move[v, k] / count[v])
-    return first
