@@ -104,7 +104,9 @@ def test_results_expire(tmp_path, runtime):
         path = settings.jobs_dir / "results" / f"{job['id']}.npz"
         assert path.is_file()
         time.sleep(0.4)
-        assert c.app.state.job_store.expire() == 1
+        store = c.app.state.job_store
+        # the runner's own sweep (every 20 ticks) may expire it first, inside the sleep
+        assert store.expire() == 1 or store.get(job["id"]) is None
         assert c.get(url).status_code == 404 and not path.exists()
 
 
