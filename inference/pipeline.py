@@ -11,7 +11,8 @@ self-supervised with the SNUG losses):
   the diffused body's offsets and skinned with its weights, both read at X (eq. 6.7-6.8,
   ``inference.canonical``); with dynamics 'none' X is the static template, with 'learned'
   X_t = D(R(beta, gamma_1..t)) (ch. 6.4: the regressor into the canonical VAE's latent, and its
-  decoder). Collisions: the final exact stage alone (the guard's pushes are for garments in the
+  decoder). Then the compression limit (``inference.strain``: no edge much below 0.8 of its rest
+  length, where eq. 6.7 squeezes the cloth under the arms). Collisions: the final exact stage alone (the guard's pushes are for garments in the
   posed space; a layered outfit keeps its push out of the body)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
@@ -289,7 +290,11 @@ def drape(
             unposed_t, h_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments, h0)
             states.append(h_t)
         with timer("skin"):
-            posed.append(linear_blend_skinning(unposed_t, w, garment_transforms))
+            skinned = linear_blend_skinning(unposed_t, w, garment_transforms)
+        if m.fit == "canonical":
+            with timer("strain"):  # eq. 6.7's squeeze under the arms: shortest edges back to 0.8 of their rest length
+                skinned = canonical.compression_limit(g)(skinned[0])[None]
+        posed.append(skinned)
         unposed_fits.append(unposed)
         weights.append(w)
 

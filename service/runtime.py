@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 MODEL_VERSIONS = {
     "body": "anny-0.6.2-cmu_mb",
     "fit": "mhclo-retarget",
-    "canonical": "diffused-canonical-v1",  # fit 'canonical': the diffused body (assets/body/diffused.npz), thesis ch. 6
+    "canonical": "diffused-canonical-v2",  # fit 'canonical': the diffused body (assets/body/diffused.npz), thesis ch. 6; v2: + the compression limit (inference/strain.py)
     "canonical_dynamics": "canonical-vae-gru-v2",  # fit 'canonical' + dynamics 'learned': regressor + VAE decoder (canonical.json); v2: + the compression limit (inference/strain.py)
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)

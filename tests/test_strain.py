@@ -116,3 +116,31 @@ def test_the_shipped_learned_canonical_tshirt_keeps_its_short_edges(tmp_path):
     p1_raw, p1_limited = np.percentile(ratios(limit, raw), 1), np.percentile(ratios(limit, limited), 1)
     assert p1_limited > p1_raw + 0.03, (p1_raw, p1_limited)
     assert np.linalg.norm(limited - raw, axis=-1).mean() < 1e-3
+
+
+def test_a_static_canonical_garment_gets_the_limit_after_its_skinning(monkeypatch):
+    """fit 'canonical' without dynamics: the template's canonical form through eq. 6.7 squeezes
+    the crew-neck tee under the arms on the heavy body; the limit lengthens its shortest edges
+    and leaves the rest of it in place."""
+    from inference.body import BodyModel
+    from inference.canonical import CanonicalModels
+    from inference.garment import GarmentCatalog
+    from inference.motion.clips import ClipLibrary
+    from inference.pipeline import DrapeOptions, PoseSequence, drape
+
+    body, catalog, canonical = BodyModel.load(), GarmentCatalog.load(), CanonicalModels()
+    asset = catalog.get("crewtee")
+    clip = ClipLibrary().load("walk")
+    motion = PoseSequence(clip.rotations[:4], clip.translation[:4], clip.fps)
+    shape = body.shape(np.array([[1.0, 1.0, 1.0, 1.0, 1.0, 1.0]], np.float32))
+    options = DrapeOptions(fit="canonical", dynamics="none", lift_arms=False, collisions="off")
+    r = drape(body, shape, motion, [asset], options, canonical=canonical)
+    assert "strain" in r.timings_ms
+    limit = canonical.compression_limit(asset)
+    # the same drape with the limit switched off
+    monkeypatch.setattr(CanonicalModels, "compression_limit", lambda self, g: (lambda X: X))
+    raw = drape(body, shape, motion, [asset], options, canonical=canonical).garments[0].vertices
+    limited = r.garments[0].vertices
+    assert ratios(limit, raw).min() < 0.7  # there is something to limit
+    assert np.percentile(ratios(limit, limited), 1) > np.percentile(ratios(limit, raw), 1) + 0.02
+    assert np.linalg.norm(limited - raw, axis=-1).mean() < 1e-3
