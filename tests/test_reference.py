@@ -179,3 +179,23 @@ def test_moved_counts_a_garment_sliding_along_the_body_that_slid_cannot_see():
     assert moved_pct(fallen, reference, carried) == 100.0
     jitter = reference + np.float32(0.01)
     assert moved_pct(jitter, reference, carried) == 0.0
+
+
+def test_hand_set_defaults_survive_the_judge_and_name_its_choice():
+    """A defaults.json entry set by hand (after looking at what the metrics miss) is kept; the
+    judge's differing choice is appended to its reason, once; other garments take the judge's
+    entry, and garments the judge did not see keep theirs."""
+    from training import judge
+
+    entry = lambda fit, dyn, reason: {"fit": fit, "dynamics": dyn, "reason": reason, "evidence": "docs/evaluation.md"}  # noqa: E731
+    current = {"longsleeve": entry("learned", "none", f"{judge.HAND_SET}: skin shows through"),
+               "tshirt": entry("retarget", "none", "baseline"), "shorts": entry("retarget", "none", "baseline")}
+    selected = {"longsleeve": entry("canonical", "learned", "closest"), "tshirt": entry("canonical", "learned", "closest")}
+    merged = judge.merge_hand_set(selected, current)
+    assert (merged["longsleeve"]["fit"], merged["longsleeve"]["dynamics"]) == ("learned", "none")
+    assert merged["longsleeve"]["reason"].startswith(judge.HAND_SET) and "fit 'canonical', dynamics 'learned': closest" in merged["longsleeve"]["reason"]
+    assert merged["tshirt"] == selected["tshirt"] and merged["shorts"] == current["shorts"]
+    again = judge.merge_hand_set(selected, merged)  # a second run does not append the choice twice
+    assert again["longsleeve"]["reason"] == merged["longsleeve"]["reason"]
+    agree = judge.merge_hand_set({"longsleeve": entry("learned", "none", "closest")}, current)
+    assert agree["longsleeve"]["reason"] == current["longsleeve"]["reason"]

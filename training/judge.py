@@ -29,7 +29,10 @@ Selection (validation split only; ``select_defaults``): a garment's default is t
 ('learned', 'learned-fit', 'canonical' or 'canonical-learned', ``CANDIDATES``) with the lowest mean error when its mean error over the
 validation cases is below both baselines' means and it is not worse on realism on any of them;
 otherwise the retarget baseline (the plain LBS of the neutral template ignores the body shape, so
-it is a baseline, never a default). "Not worse on realism" is read against both anchors: a metric
+it is a baseline, never a default). A default whose reason starts with ``HAND_SET`` (a choice made
+after looking at what the metrics do not measure, e.g. skin showing through the cloth in the
+contact sheets) is kept by ``--write-defaults`` and shown in the report, with the judge's own
+choice after it (``merge_hand_set``). "Not worse on realism" is read against both anchors: a metric
 fails only where the method is worse than the reference by its ``REALISM_MARGINS`` margin *and*
 worse than the retarget baseline on the same frames by its ``RETARGET_TOLERANCE`` (every method,
 the baselines included, misses the reference's edge percentiles, since a simulation stretches and
@@ -54,6 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+from inference.defaults import ASSETS_DIR, DEFAULTS_FILE
 from inference.garment import GarmentCatalog
 from inference.learned import MissingModelError
 from inference.metrics import collision_rates, realism, unsigned_distance
@@ -313,6 +317,29 @@ def _fmt(x: float, nd: int = 2) -> str:
     return f"{x:.{nd}f}"
 
 
+# A defaults.json reason that starts with this was set by hand (module docstring); the judge keeps it.
+HAND_SET = "set by hand"
+SHIPPED_DEFAULTS = Path(ASSETS_DIR) / DEFAULTS_FILE
+
+
+def merge_hand_set(selected: dict[str, dict], current: dict[str, dict]) -> dict[str, dict]:
+    """The judge's ``selected`` defaults, except the garments whose ``current`` entry (the shipped
+    defaults.json) is ``HAND_SET``: those keep their entry, its reason followed by the judge's
+    choice when that differs. Garments the judge did not see keep their current entry."""
+    out = {**current, **selected}
+    for g, entry in current.items():
+        if not entry.get("reason", "").startswith(HAND_SET):
+            continue
+        mine = selected.get(g)
+        kept = dict(entry)
+        base = entry["reason"].split(" [the judge's choice:")[0]
+        if mine is not None and (mine["fit"], mine["dynamics"]) != (entry["fit"], entry["dynamics"]):
+            base += f" [the judge's choice: fit '{mine['fit']}', dynamics '{mine['dynamics']}': {mine['reason']}]"
+        kept["reason"] = base
+        out[g] = kept
+    return out
+
+
 def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str, missing: dict[str, list[str]] | None = None) -> str:
     """docs/evaluation.md: one table per split (module docstring for the definitions); ``missing``
     lists, per split, the 'garment on case' pairs whose reference was not simulated."""
@@ -475,8 +502,12 @@ def main(argv: list[str] | None = None) -> None:
     defaults = None
     if "validation" in results and results["validation"]:
         defaults = select_defaults(results["validation"], len(SPLITS["validation"]))
+        shipped = args.write_defaults if args.write_defaults is not None and args.write_defaults.exists() else SHIPPED_DEFAULTS
+        current = json.loads(shipped.read_text())["garments"] if shipped.exists() else {}
+        merged = merge_hand_set(defaults, current)  # hand-set entries kept; garments not judged here keep theirs
+        defaults = {g: merged[g] for g in defaults}
         if args.write_defaults:
-            args.write_defaults.write_text(json.dumps({"format": 1, "garments": defaults}, indent=1) + "\n")
+            args.write_defaults.write_text(json.dumps({"format": 1, "garments": dict(sorted(merged.items()))}, indent=1) + "\n")
             log.info("wrote %s", args.write_defaults)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps({"results": results, "defaults": defaults}, indent=1))
