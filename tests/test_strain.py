@@ -83,25 +83,31 @@ def test_frames_are_limited_independently_of_the_batch_they_come_in():
         np.testing.assert_allclose(limit(X[b:b + 1])[0], together[b], atol=1e-7)
 
 
+def heavy_walk(garment: str, frames: int):
+    """The body model, a garment asset, the heaviest adult and the first ``frames`` of the walk."""
+    from inference.body import BodyModel
+    from inference.garment import GarmentCatalog
+    from inference.motion.clips import ClipLibrary
+    from inference.pipeline import PoseSequence
+
+    body = BodyModel.load()
+    clip = ClipLibrary().load("walk")
+    motion = PoseSequence(clip.rotations[:frames], clip.translation[:frames], clip.fps)
+    return body, GarmentCatalog.load().get(garment), body.shape(np.ones((1, 6), np.float32)), motion
+
+
 def test_the_shipped_learned_canonical_tshirt_keeps_its_short_edges(tmp_path):
     """The pipeline's learned canonical T-shirt has the limit after eq. 6.7: its shortest 1 % of
     edges are longer than the decoded and posed frames' (which the limit alone changes), and
     its shape hardly moves."""
-    from inference.body import BodyModel
     from inference.canonical import CanonicalModels
-    from inference.garment import GarmentCatalog
-    from inference.motion.clips import ClipLibrary
     from inference.motion.descriptor import motion_descriptor
-    from inference.pipeline import DrapeOptions, PoseSequence, drape
+    from inference.pipeline import DrapeOptions, drape
 
     canonical = CanonicalModels()
     if not canonical.available("tshirt"):
         pytest.skip("no learned canonical T-shirt shipped")
-    body, catalog = BodyModel.load(), GarmentCatalog.load()
-    asset = catalog.get("tshirt")
-    clip = ClipLibrary().load("walk")
-    motion = PoseSequence(clip.rotations[:6], clip.translation[:6], clip.fps)
-    shape = body.shape(np.array([[1.0, 1.0, 1.0, 1.0, 1.0, 1.0]], np.float32))
+    body, asset, shape, motion = heavy_walk("tshirt", 6)
     options = DrapeOptions(fit="canonical", dynamics="learned", lift_arms=False, collisions="off")
     r = drape(body, shape, motion, [asset], options, canonical=canonical)
     assert "strain" in r.timings_ms
@@ -122,17 +128,11 @@ def test_a_static_canonical_garment_gets_the_limit_after_its_skinning(monkeypatc
     """fit 'canonical' without dynamics: the template's canonical form through eq. 6.7 squeezes
     the crew-neck tee under the arms on the heavy body; the limit lengthens its shortest edges
     and leaves the rest of it in place."""
-    from inference.body import BodyModel
     from inference.canonical import CanonicalModels
-    from inference.garment import GarmentCatalog
-    from inference.motion.clips import ClipLibrary
-    from inference.pipeline import DrapeOptions, PoseSequence, drape
+    from inference.pipeline import DrapeOptions, drape
 
-    body, catalog, canonical = BodyModel.load(), GarmentCatalog.load(), CanonicalModels()
-    asset = catalog.get("crewtee")
-    clip = ClipLibrary().load("walk")
-    motion = PoseSequence(clip.rotations[:4], clip.translation[:4], clip.fps)
-    shape = body.shape(np.array([[1.0, 1.0, 1.0, 1.0, 1.0, 1.0]], np.float32))
+    canonical = CanonicalModels()
+    body, asset, shape, motion = heavy_walk("crewtee", 4)
     options = DrapeOptions(fit="canonical", dynamics="none", lift_arms=False, collisions="off")
     r = drape(body, shape, motion, [asset], options, canonical=canonical)
     assert "strain" in r.timings_ms

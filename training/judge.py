@@ -319,6 +319,7 @@ def _fmt(x: float, nd: int = 2) -> str:
 
 # A defaults.json reason that starts with this was set by hand (module docstring); the judge keeps it.
 HAND_SET = "set by hand"
+JUDGES_CHOICE = " [the judge's choice:"
 SHIPPED_DEFAULTS = Path(ASSETS_DIR) / DEFAULTS_FILE
 
 
@@ -332,9 +333,9 @@ def merge_hand_set(selected: dict[str, dict], current: dict[str, dict]) -> dict[
             continue
         mine = selected.get(g)
         kept = dict(entry)
-        base = entry["reason"].split(" [the judge's choice:")[0]
+        base = entry["reason"].split(JUDGES_CHOICE)[0]
         if mine is not None and (mine["fit"], mine["dynamics"]) != (entry["fit"], entry["dynamics"]):
-            base += f" [the judge's choice: fit '{mine['fit']}', dynamics '{mine['dynamics']}': {mine['reason']}]"
+            base += f"{JUDGES_CHOICE} fit '{mine['fit']}', dynamics '{mine['dynamics']}': {mine['reason']}]"
         kept["reason"] = base
         out[g] = kept
     return out
