@@ -16,6 +16,8 @@ crosses it, ``inference.layers``; openings have nothing to cross) and ``layer_vi
 closest outer point's side: it misjudges the gap between the arm and the torso, where the
 nearest outer surface is a sleeve's inner wall, not the layer above the vertex); the
 intersecting triangle pairs between two layers in ``inference.intersections`` (exact, compiled).
+Skin through the cloth (``skin_crossings``): the same exact pair test between the body and a
+garment, on the body faces outside the body itself (what a render can show).
 
 Units: metres. Shapes: batch axis first; a frame is one (points, mesh) pair.
 """
@@ -25,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
+from inference.intersections import layer_intersection_faces
 from inference.layers import anchor_crossings
 from inference.mesh import major_components, vertex_normals
 from inference.mesh import face_normals
@@ -360,3 +363,21 @@ def realism(frames: np.ndarray, faces: np.ndarray, rest: np.ndarray, edges: np.n
         "jump_max_m": float(jumps.max()),
         "jump_p99_m": float(np.percentile(jumps, 99)),
     }
+
+
+def skin_crossings(garment: np.ndarray, garment_faces: np.ndarray, body: np.ndarray, body_faces: np.ndarray) -> float:
+    """Body and garment triangles that cross, per frame (the skin shows through the cloth there):
+    the mean over frames of the intersecting (body face, garment face) pairs, counting only the
+    body faces whose centroid is outside the body (winding number 0): the faces inside its own
+    self-intersections (an arm pressed into the torso) and its inner parts (eyes, teeth) cannot
+    be seen, whatever crosses them.
+
+    garment : (T, V, 3) metres ; garment_faces : (F, 3) ; body : (T, Vb, 3) metres ; body_faces : (Fb, 3)
+    """
+    garment, body = np.asarray(garment), np.asarray(body)
+    if body.ndim != 3 or garment.ndim != 3 or body.shape[0] != garment.shape[0]:
+        raise InputShapeError("body", f"({garment.shape[0] if garment.ndim else '?'}, Vb, 3)", body.shape)
+    body_faces = _faces(body_faces, body.shape[1])
+    crossed = layer_intersection_faces(body, body_faces, garment, garment_faces)  # (T, Fb)
+    visible = winding_numbers(body[:, body_faces].mean(2), body, body_faces) == 0
+    return float((crossed * visible).sum(1).mean())

@@ -18,6 +18,19 @@ point (edges of zero length: the canonical jacket on a wide-hipped body lost 1.5
 below half their rest length to it, 02_07 light-tall). The vertex targets stay for points whose
 plane targets are all inside (a fold between two parts).
 
+Clearance: a point on the skin, or a fraction of a millimetre off it, leaves the skin's bulges
+free to cross the cloth's triangles between the points (under the chest and on the upper arm of a
+heavy body, the renders show the skin through the cloth). So the test is against the body
+inflated by CLEARANCE_M along its vertex normals (``inference.winding.inflated``), or the body
+itself, whichever holds the point ("either": in a crease the inflated copy need not hold the
+body), in one grid binned over both; the targets lie at least CLEARANCE_SLACK_M beyond the
+clearance. A point outside the body whose nearest free target is more than BAND_MOVE_M beyond
+its offset (in the gap between an arm and the torso) stays where it is: only points inside the
+body must move, whatever the distance. On the validation walk (02_02, 20 frames; ``python
+tools/skin_through.py``), the learned canonical T-shirt's crossing pairs on visible body faces
+fall from 29 / 277 / 298 per frame (neutral / heaviest / light-tall) to 10 / 53 / 69, where the
+retarget baseline has 30 / 39 / 47; 2-9 % of the vertices move, p99 1.6-3.4 mm.
+
 (a point with no outside target among them tries FAR_FACTOR times more candidates; one with
 none there either stays where it is, is counted and logged). The targets lie on the outer surface
 of the union of the overlapping parts, so a point squeezed between an arm and the torso goes
@@ -31,7 +44,9 @@ Cost per frame, one thread (``python bench/bench_canonical.py``: the static cano
 the heavy body, ~47 points inside per frame): the winding grid of the body (~2.5 ms, once per
 block of frames, shared by the layers), the count at the garment's vertices (~1.6 ms for 5k), and,
 for the frames with points inside, a KD-tree of the skin vertices near them and the count at the
-targets (~2 ms): ~6 ms in all.
+targets (~2 ms): ~6 ms in all before the clearance; it adds the inflated copy (~0.3 ms), a
+grid over both and counts against both (~1-2 ms), and the points within it (bench table in
+docs/benchmarks.md).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -46,7 +61,7 @@ from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError
 from inference.mesh import face_normals, major_components, vertex_face_incidence
-from inference.winding import FRAME_BLOCK, WindingGrid
+from inference.winding import FRAME_BLOCK, WindingGrid, inflated
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +76,14 @@ FAR_FACTOR = 16
 # (_posed_targets): the 32nd nearest skin vertex of a point inside the T-shirt's posed body lies
 # 4.9 cm away (median; p99 8.5 cm, 30 frames of the heavy body on 02_02).
 NEAR_BOX_M = 0.1
+# The points tested are those inside the body inflated by CLEARANCE_M (module doc): a point on the
+# skin leaves the skin's bulges free to cross its triangles. They move at least CLEARANCE_SLACK_M
+# beyond it, so that their targets are not on the inflated surface.
+CLEARANCE_M = 0.002
+CLEARANCE_SLACK_M = 0.001
+# A point within the clearance but outside the body moves at most this much beyond its target
+# offset; farther targets (around an arm that presses on the torso) leave it where it is.
+BAND_MOVE_M = 0.003
 # Targets tested per point at a time, nearest first.
 ROUND = 4
 
@@ -73,8 +96,10 @@ def exact_repair(
     *,
     skin: np.ndarray | None = None,
     k: int = REPAIR_CANDIDATES,
+    clearance_m: float | None = None,
 ) -> tuple[np.ndarray, int]:
-    """Move every point inside the body (winding number >= 1) to its nearest outside target.
+    """Move every point inside the body (winding number >= 1), or within ``clearance_m`` of it
+    (``repair_layers``), to its nearest outside target.
 
     points       : (B, T, N, 3) float32, metres, guarded garment vertices
     body         : (B, T, V, 3) float32, metres, posed closed body
@@ -84,7 +109,7 @@ def exact_repair(
                    (anny's skin, not its eyes and teeth)
     returns      : repaired points (B, T, N, 3) float32, number of points left inside
     """
-    out, left = repair_layers([points], body, body_faces, [margin_m], skin=skin, k=k)
+    out, left = repair_layers([points], body, body_faces, [margin_m], skin=skin, k=k, clearance_m=clearance_m)
     return out[0], left
 
 
@@ -96,10 +121,15 @@ def repair_layers(
     *,
     skin: np.ndarray | None = None,
     k: int = REPAIR_CANDIDATES,
+    clearance_m: float | None = None,
 ) -> tuple[list[np.ndarray], int]:
     """``exact_repair`` of several garments on one body, sharing its winding grid per block of
     frames: layers each (B, T, N_i, 3), margins_m one per layer; returns the repaired layers and
-    the number of point-frames left inside."""
+    the number of point-frames left inside.
+
+    clearance_m: the test runs against the body inflated by this much along its vertex normals,
+    so points closer to the skin than it move too (default CLEARANCE_M; 0 tests the body itself);
+    a layer's targets lie at least CLEARANCE_SLACK_M beyond it."""
     layers = [np.asarray(p) for p in layers]
     Bv = np.asarray(body)
     for p in layers:
@@ -118,25 +148,41 @@ def repair_layers(
     skin_ids = np.flatnonzero(skin)
     skin_faces = np.asarray(body_faces)[skin[body_faces].all(1)]
     k = int(min(k, len(skin_ids)))
+    if clearance_m is None:
+        clearance_m = CLEARANCE_M
+    offsets = [max(m, clearance_m + CLEARANCE_SLACK_M) if clearance_m > 0.0 else m for m in margins_m]
     far = int(min(FAR_FACTOR * k, len(skin_ids)))
     out = [p.reshape(B * T, p.shape[2], 3).copy() for p in layers]
     left = 0
     for f0 in range(0, B * T, FRAME_BLOCK):
         sl = slice(f0, f0 + FRAME_BLOCK)
-        grid = WindingGrid(Bv[sl], body_faces)
+        # inside the body or its inflated copy ("either": where a crease of the skin folds the
+        # copy's normals across each other, it need not hold the body); one grid for both
+        grid = (WindingGrid(inflated(Bv[sl], body_faces, clearance_m), body_faces, second=Bv[sl]) if clearance_m > 0.0
+                else WindingGrid(Bv[sl], body_faces))
+        mesh = "either" if clearance_m > 0.0 else "first"
         for i, P in enumerate(out):
             Pb = P[sl]  # a view: the moves write into P
-            frame, idx = np.nonzero(grid.count(Pb) > 0)
+            frame, idx = np.nonzero(grid.count(Pb, mesh) > 0)
             if not len(frame):
                 continue
             ok = np.zeros(len(frame), bool)
+            start = Pb[frame, idx]
             trees: dict[int, cKDTree] = {}  # the posed skin's KD-tree per frame, built once
             for kk in (k, far):  # deep in an overlap every near target is inside too: look farther
                 rem = np.flatnonzero(~ok)
-                targets = _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, margins_m[i], kk, trees)
-                ok[rem] = _move_outside(Pb, grid, frame[rem], idx[rem], targets)
+                targets = _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, offsets[i], kk, trees)
+                ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets)
                 if ok.all():
                     break
+            if clearance_m > 0.0:
+                # a point that had to go far (or nowhere) but was only within the clearance, not
+                # inside the body itself (between the arm and the torso), stays where it was
+                far_ = np.flatnonzero(~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M))
+                if len(far_):
+                    band = far_[grid.count_at(start[far_], frame[far_], "second") == 0]
+                    Pb[frame[band], idx[band]] = start[band]
+                    ok[band] = True
             left += int((~ok).sum())
     if left:
         log.warning("exact repair: %d point-frames left inside the body (no outside target among %d candidates)", left, far)
@@ -193,12 +239,13 @@ def _targets(Bb, frame, ids, skin_faces, margin_m, points) -> np.ndarray:
     vpos = vpos.reshape(ids.shape)
     c, nc = Bb[frame[:, None], ids], n[vpos, fpos[:, None]]  # (n, k, 3), nearest first
     p = np.asarray(points)[:, None, :]
-    depth = np.maximum(np.einsum("nkc,nkc->nk", c - p, nc), 0.0)
+    # never inward: a point already above c_j's plane moves out to the margin, no farther
+    depth = np.maximum(np.einsum("nkc,nkc->nk", c - p, nc), -margin_m)
     plane = p + (depth + margin_m)[..., None] * nc
     return np.concatenate([plane, c + margin_m * nc], axis=1).astype(Bb.dtype)
 
 
-def _move_outside(Pb, grid, frame, idx, targets) -> np.ndarray:
+def _move_outside(Pb, grid, mesh, frame, idx, targets) -> np.ndarray:
     """Move points (frame, idx) of the block Pb (in place) to their nearest outside target of
     ``targets`` (n, k, 3); returns (n,) bool, True where one was found."""
     k = targets.shape[1]
@@ -209,7 +256,7 @@ def _move_outside(Pb, grid, frame, idx, targets) -> np.ndarray:
     pending = np.arange(len(frame))
     for r0 in range(0, k, ROUND):
         cols = order[pending, r0:r0 + ROUND]
-        outside = grid.count_at(targets[pending[:, None], cols].reshape(-1, 3), np.repeat(frame[pending], cols.shape[1]))
+        outside = grid.count_at(targets[pending[:, None], cols].reshape(-1, 3), np.repeat(frame[pending], cols.shape[1]), mesh)
         outside = outside.reshape(cols.shape) == 0
         hit = outside.any(1)
         best[pending[hit]] = cols[hit, outside[hit].argmax(1)]

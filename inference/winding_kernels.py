@@ -30,26 +30,31 @@ BOX_SLACK = 1e-6
 
 
 @numba.njit(**_JIT)
-def _cells(u, v, a, c, d, lo_u, lo_v, inv_h):
-    """(i0, i1, j0, j1): the cells covered by the projected box of the face with vertices a, c, d;
-    i1 < i0 for a face of zero projected area (it never counts)."""
-    u0, u1, u2 = u[a], u[c], u[d]
-    v0, v1, v2 = v[a], v[c], v[d]
-    if (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0) == 0.0:
+def _cells(u, v, u2, v2, a, c, d, lo_u, lo_v, inv_h):
+    """(i0, i1, j0, j1): the cells covered by the projected box of the face with vertices a, c, d
+    in both vertex sets (u, v) and (u2, v2) (the same arrays when a grid holds one mesh); i1 < i0
+    for a face of zero projected area in both (it never counts)."""
+    u0, u1, u2_ = u[a], u[c], u[d]
+    v0, v1, v2_ = v[a], v[c], v[d]
+    s0, s1, s2 = u2[a], u2[c], u2[d]
+    t0, t1, t2 = v2[a], v2[c], v2[d]
+    if (u1 - u0) * (v2_ - v0) - (v1 - v0) * (u2_ - u0) == 0.0 and (s1 - s0) * (t2 - t0) - (t1 - t0) * (s2 - s0) == 0.0:
         return 1, 0, 1, 0
-    i0 = int(np.floor((min(u0, u1, u2) - lo_u) * inv_h))
-    i1 = int(np.floor((max(u0, u1, u2) - lo_u) * inv_h))
-    j0 = int(np.floor((min(v0, v1, v2) - lo_v) * inv_h))
-    j1 = int(np.floor((max(v0, v1, v2) - lo_v) * inv_h))
+    i0 = int(np.floor((min(u0, u1, u2_, s0, s1, s2) - lo_u) * inv_h))
+    i1 = int(np.floor((max(u0, u1, u2_, s0, s1, s2) - lo_u) * inv_h))
+    j0 = int(np.floor((min(v0, v1, v2_, t0, t1, t2) - lo_v) * inv_h))
+    j1 = int(np.floor((max(v0, v1, v2_, t0, t1, t2) - lo_v) * inv_h))
     return i0, i1, j0, j1
 
 
 @numba.njit(**_JIT)
-def count_pairs(u, v, faces, B, V, inv_h, lo, ni, nj, start):
+def count_pairs(u, v, u2, v2, faces, B, V, inv_h, lo, ni, nj, start):
     """First pass of the binning: start[c + 1] = the number of faces of cell c, then its prefix
     sum (start: (B*ni*nj + 1,) int64, overwritten). Returns the number of (cell, face) pairs.
 
     u, v  : (B*V,) float64, every frame's projected vertex coordinates x, z (frame b at b*V)
+    u2, v2: the same of a second vertex set of the same faces, binned with it (each face over
+            the box of both of its projections), or u, v themselves
     faces : (F, 3) int64; inv_h: 1 / cell size, 1/metres; lo (B, 2): each frame's grid origin
     (a cell index is floor((x - lo) inv_h), for faces and points alike: monotone in x, so a point
     inside a face's box lands in a cell the face covers)
@@ -60,7 +65,8 @@ def count_pairs(u, v, faces, B, V, inv_h, lo, ni, nj, start):
     for b in range(B):
         base = b * V
         for f in range(F):
-            i0, i1, j0, j1 = _cells(u, v, base + faces[f, 0], base + faces[f, 1], base + faces[f, 2], lo[b, 0], lo[b, 1], inv_h)
+            i0, i1, j0, j1 = _cells(u, v, u2, v2, base + faces[f, 0], base + faces[f, 1], base + faces[f, 2], lo[b, 0], lo[b, 1],
+                                    inv_h)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
                     start[b * cells + i * nj + j + 1] += 1
@@ -70,10 +76,10 @@ def count_pairs(u, v, faces, B, V, inv_h, lo, ni, nj, start):
 
 
 @numba.njit(**_JIT)
-def fill_pairs(u, v, y, faces, B, V, inv_h, lo, ni, nj, start, fill, cell_face, pair_box):
+def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, start, fill, cell_face, pair_box):
     """Second pass: the faces of cell c (face ids f of frame b, in increasing order) in
     cell_face[start[c]:start[c + 1]] (int32), each with its face's box (u min, u max, v min,
-    v max, y max) in pair_box (float32, widened by BOX_SLACK so that the pre-test of
+    v max, y max; over both vertex sets, as ``count_pairs``) in pair_box (float32, widened by BOX_SLACK so that the pre-test of
     ``count_crossings`` stays conservative after the rounding), so that a point's pre-test
     reads memory in order. fill: (B*ni*nj,) int64 scratch."""
     F = faces.shape[0]
@@ -83,12 +89,12 @@ def fill_pairs(u, v, y, faces, B, V, inv_h, lo, ni, nj, start, fill, cell_face, 
         base = b * V
         for f in range(F):
             a, c, d = base + faces[f, 0], base + faces[f, 1], base + faces[f, 2]
-            i0, i1, j0, j1 = _cells(u, v, a, c, d, lo[b, 0], lo[b, 1], inv_h)
+            i0, i1, j0, j1 = _cells(u, v, u2, v2, a, c, d, lo[b, 0], lo[b, 1], inv_h)
             if i1 < i0:
                 continue
-            umin, umax = min(u[a], u[c], u[d]), max(u[a], u[c], u[d])
-            vmin, vmax = min(v[a], v[c], v[d]), max(v[a], v[c], v[d])
-            ymax = max(y[a], y[c], y[d])
+            umin, umax = min(u[a], u[c], u[d], u2[a], u2[c], u2[d]), max(u[a], u[c], u[d], u2[a], u2[c], u2[d])
+            vmin, vmax = min(v[a], v[c], v[d], v2[a], v2[c], v2[d]), max(v[a], v[c], v[d], v2[a], v2[c], v2[d])
+            ymax = max(y[a], y[c], y[d], y2[a], y2[c], y2[d])
             box0 = np.float32(umin - BOX_SLACK * (1.0 + abs(umin)))
             box1 = np.float32(umax + BOX_SLACK * (1.0 + abs(umax)))
             box2 = np.float32(vmin - BOX_SLACK * (1.0 + abs(vmin)))
@@ -104,12 +110,41 @@ def fill_pairs(u, v, y, faces, B, V, inv_h, lo, ni, nj, start, fill, cell_face, 
 
 
 @numba.njit(**_JIT)
-def count_crossings(points, frame, u, v, y, faces, edge_lo, edge_hi, opposite, flip, V, inv_h, lo, ni, nj, start, cell_face,
-                    pair_box):
+def _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip):
+    """The signed crossing (-1, 0 or +1) of the ray from (pu, pyy, pv) with face f of the frame
+    at vertex offset ``base``: inside the face's projection by its canonical edge functions and
+    the face above the point (module doc)."""
+    a, q, r = base + faces[f, 0], base + faces[f, 1], base + faces[f, 2]
+    u0, v0 = u[a], v[a]
+    A2 = (u[q] - u0) * (v[r] - v0) - (v[q] - v0) * (u[r] - u0)
+    if A2 == 0.0:  # no area (binned for the other vertex set of the grid, if at all)
+        return 0
+    ccw = A2 > 0.0
+    depth = 0.0
+    for k in range(3):
+        lo_k, hi_k = base + edge_lo[f, k], base + edge_hi[f, k]
+        e0u, e0v = u[lo_k], v[lo_k]
+        du, dv = u[hi_k] - e0u, v[hi_k] - e0v
+        E = du * (pv - e0v) - dv * (pu - e0u)
+        if ((E >= 0.0) ^ flip[f, k]) != ccw:
+            return 0
+        Et = -E if flip[f, k] else E
+        depth = depth + Et * (y[base + opposite[f, k]] - pyy)
+    if (depth > 0.0) == ccw:
+        return -1 if ccw else 1
+    return 0
+
+
+@numba.njit(**_JIT)
+def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip, V, inv_h, lo, ni, nj, start,
+                    cell_face, pair_box, either):
     """Winding number at each point: the signed crossings of its ray with the faces of its cell.
 
     points     : (P, 3) float32 or float64, metres; frame (P,) int64: the frame each point is tested in
-    u, v, y    : (B*V,) float64 vertex coordinates (x, z, y); faces (F, 3) int64
+    u, v, y    : (B*V,) float64 vertex coordinates (x, z, y), one vertex set the grid was binned
+                 with; faces (F, 3) int64
+    u2, v2, y2 : the grid's other vertex set, read only if ``either``: then the larger of the two
+                 winding numbers (a point inside either mesh counts as inside), in the same pass
     edge_lo, edge_hi, opposite : (F, 3) int64 canonical edge k of each face and the corner opposite
     flip       : (F, 3) bool, edge k runs against the face's own orientation
     inv_h, lo, ni, nj, start, cell_face, pair_box : the grid (``count_pairs``, ``fill_pairs``)
@@ -126,30 +161,40 @@ def count_crossings(points, frame, u, v, y, faces, edge_lo, edge_hi, opposite, f
         if i < 0 or i >= ni or j < 0 or j >= nj:
             continue
         c = b * cells + i * nj + j
-        total = 0
+        total, total2 = 0, 0
         base = b * V
         for s in range(start[c], start[c + 1]):
             # cheap pre-test: the projected box holds p and the face reaches above p
             if pu < pair_box[s, 0] or pu > pair_box[s, 1] or pv < pair_box[s, 2] or pv > pair_box[s, 3] or pair_box[s, 4] <= pyy:
                 continue
             f = cell_face[s]
-            a, q, r = base + faces[f, 0], base + faces[f, 1], base + faces[f, 2]
-            u0, v0 = u[a], v[a]
-            A2 = (u[q] - u0) * (v[r] - v0) - (v[q] - v0) * (u[r] - u0)
-            ccw = A2 > 0.0
-            hit = True
-            depth = 0.0
-            for k in range(3):
-                lo_k, hi_k = base + edge_lo[f, k], base + edge_hi[f, k]
-                e0u, e0v = u[lo_k], v[lo_k]
-                du, dv = u[hi_k] - e0u, v[hi_k] - e0v
-                E = du * (pv - e0v) - dv * (pu - e0u)
-                if ((E >= 0.0) ^ flip[f, k]) != ccw:
-                    hit = False
-                    break
-                Et = -E if flip[f, k] else E
-                depth = depth + Et * (y[base + opposite[f, k]] - pyy)
-            if hit and ((depth > 0.0) == ccw):
-                total += -1 if ccw else 1
-        w[p] = total
+            total += _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip)
+            if either:
+                total2 += _crossing(pu, pv, pyy, f, base, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip)
+        w[p] = max(total, total2) if either else total
     return w
+
+
+@numba.njit(**_JIT)
+def inflate(x, faces, distance, out):
+    """out[b, v] = x[b, v] + distance n_v: n_v the unit area-weighted vertex normal of frame b (the
+    sum of its faces' (x1 - x0) x (x2 - x0)); a vertex without area keeps its place. x, out:
+    (B, V, 3) float32; faces (F, 3) int64."""
+    B, V = x.shape[0], x.shape[1]
+    n = np.zeros((V, 3), np.float64)
+    for b in range(B):
+        n[:] = 0.0
+        for f in range(faces.shape[0]):
+            i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = x[b, j, 0] - x[b, i, 0], x[b, j, 1] - x[b, i, 1], x[b, j, 2] - x[b, i, 2]
+            bx, by, bz = x[b, k, 0] - x[b, i, 0], x[b, k, 1] - x[b, i, 1], x[b, k, 2] - x[b, i, 2]
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            for c in (i, j, k):
+                n[c, 0] += nx
+                n[c, 1] += ny
+                n[c, 2] += nz
+        for v in range(V):
+            length = (n[v, 0] ** 2 + n[v, 1] ** 2 + n[v, 2] ** 2) ** 0.5
+            s = distance / length if length > 1e-24 else 0.0
+            for c in range(3):
+                out[b, v, c] = x[b, v, c] + s * n[v, c]

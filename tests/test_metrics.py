@@ -169,3 +169,24 @@ def test_input_validation():
         winding_numbers(np.zeros((2, 5, 3)), v[None], f)
     with pytest.raises(InputShapeError):
         winding_numbers(np.zeros((1, 5, 3)), v[None], f + len(v))
+
+
+def test_skin_crossings_count_the_visible_body_faces_a_garment_crosses():
+    """A small triangle through a sphere's surface crosses it; moved 1 cm out it does not; through
+    the part of one sphere's surface that is inside the other (an arm in the torso) it is not seen."""
+    import trimesh
+
+    from inference.metrics import skin_crossings
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    body = np.concatenate([s.vertices - [0.9, 0, 0], s.vertices + [0.9, 0, 0]]).astype(np.float32)[None]
+    faces = np.concatenate([s.faces, s.faces + len(s.vertices)])
+    plate = np.array([[[-0.2, -0.2, 0.0], [0.2, -0.2, 0.0], [0.0, 0.2, 0.0]]], np.float32)  # normal z
+    top = np.array([-0.9, 0.0, 0.98], np.float32)  # 2 cm below the top of the left sphere, far from the other
+    assert skin_crossings(plate + top, [[0, 1, 2]], body, faces) > 0
+    assert skin_crossings(plate + top + [0, 0, 0.03], [[0, 1, 2]], body, faces) == 0
+    # upright across the left sphere's tip at x = 0.1, which is inside the right sphere
+    upright = np.array([[[0.05, 0.013, -0.05], [0.15, 0.013, -0.05], [0.1, 0.013, 0.05]]], np.float32)
+    assert skin_crossings(upright, [[0, 1, 2]], body, faces) == 0
+    # the same plate across the right sphere's outer tip (x = 1.9) is seen
+    assert skin_crossings(upright + [1.8, 0.0, 0.0], [[0, 1, 2]], body, faces) > 0

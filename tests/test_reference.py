@@ -114,6 +114,20 @@ def test_realism_fails_only_when_worse_than_the_reference_and_the_baseline():
     assert worse_on_realism(_realism(jump=0.2), reference, retarget) == ["jump"]
 
 
+def test_skin_crossings_fail_against_both_anchors_and_only_where_both_rows_have_them():
+    from training.judge import worse_on_realism
+
+    reference = {**_realism(), "skin_pairs": 2.0}
+    retarget = {**_realism(), "skin_pairs": 40.0}
+    # skin through the cloth on a heavy body: far above the simulation's and 1.5x the baseline's
+    assert worse_on_realism({**_realism(), "skin_pairs": 61.0}, reference, retarget) == ["skin"]
+    # as much as the baseline shows, or a few above the reference: not worse
+    assert worse_on_realism({**_realism(), "skin_pairs": 59.0}, reference, retarget) == []
+    assert worse_on_realism({**_realism(), "skin_pairs": 11.0}, reference, {**retarget, "skin_pairs": 4.0}) == []
+    # a row judged before the metric existed has no count: nothing to compare
+    assert worse_on_realism({**_realism(), "skin_pairs": 500.0}, _realism(), retarget) == []
+
+
 def test_selection_uses_the_mean_over_the_validation_cases():
     from training import judge
 

@@ -5,7 +5,7 @@ import trimesh
 
 from inference.errors import InputShapeError
 from inference.repair import exact_repair
-from inference.winding import WindingGrid, winding_numbers
+from inference.winding import WindingGrid, inflated, winding_numbers
 
 
 def _two_spheres():
@@ -111,3 +111,48 @@ def test_layers_share_the_body_and_keep_their_margins():
     assert 1.015 < np.linalg.norm(b[0, 0, 0] - [0.9, 0, 0]) < 1.03  # its own margin: 2 cm
     with pytest.raises(InputShapeError):
         repair_layers([inner, outer], body, f, [0.005])
+
+
+def test_one_grid_answers_for_the_body_its_inflated_copy_or_either():
+    v, f = _two_spheres()
+    frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)
+    big = inflated(frames, f, 0.05)
+    # every vertex 5 cm out along its normal: the spheres' radius grows by ~5 cm (the normals of an
+    # icosphere are radial; those on the lens' seam are not, so only the outer vertices are checked)
+    r = np.linalg.norm(big[0, : len(v) // 2] - [-0.9, 0, 0], axis=1)
+    outer = np.linalg.norm(v[: len(v) // 2] - [0.9, 0, 0], axis=1) > 1.0
+    np.testing.assert_allclose(r[outer], 1.05, atol=2e-3)
+    grid = WindingGrid(big, f, second=frames)
+    q = np.random.default_rng(2).uniform(-2.2, 2.2, (2, 2000, 3)).astype(np.float32)
+    q[1] += [0.0, 0.0, 3.0]
+    first, second = winding_numbers(q, big, f), winding_numbers(q, frames, f)
+    assert (first > second).sum() > 50  # the shell between the two is sampled
+    np.testing.assert_array_equal(grid.count(q), first)
+    np.testing.assert_array_equal(grid.count(q, "second"), second)
+    np.testing.assert_array_equal(grid.count(q, "either"), np.maximum(first, second))
+    with pytest.raises(ValueError):
+        WindingGrid(frames, f).count(q, "second")
+
+
+def test_points_within_the_clearance_move_out_unless_only_a_far_target_is_free():
+    """The body inflated by the clearance is the test (inference.repair.CLEARANCE_M): a point 1 mm
+    off the skin moves out to the margin, one 5 mm off stays; one in a 3 mm gap between two parts
+    (within the clearance of both, outside the body) has no target near enough and stays."""
+    from inference.repair import CLEARANCE_M, CLEARANCE_SLACK_M
+
+    s = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    gap = 0.003
+    v = np.concatenate([s.vertices - [1.0 + gap / 2, 0, 0], s.vertices + [1.0 + gap / 2, 0, 0]]).astype(np.float32)
+    f = np.concatenate([s.faces, s.faces + len(s.vertices)])
+    centre = np.array([1.0 + gap / 2, 0, 0])
+    d = np.array([0.0, 0.0, 1.0])
+    p = np.array([centre + 1.001 * d, centre + 1.005 * d, [0.0, 0.0, 0.0]], np.float32)[None, None]
+    out, left = exact_repair(p, v[None, None], f, margin_m=0.002)
+    assert left == 0
+    r = np.linalg.norm(out[0, 0, 0] - centre)
+    assert CLEARANCE_M < r - 1.0 < CLEARANCE_M + 2 * CLEARANCE_SLACK_M, r  # just beyond the clearance, along the normal
+    np.testing.assert_allclose(out[0, 0, 0, :2], p[0, 0, 0, :2], atol=5e-4)
+    np.testing.assert_array_equal(out[0, 0, 1:], p[0, 0, 1:])
+    # with no clearance, only points inside the body move
+    out0, _ = exact_repair(p, v[None, None], f, margin_m=0.002, clearance_m=0.0)
+    np.testing.assert_array_equal(out0, p)

@@ -19,7 +19,8 @@ from all training: ``01_01``), else ``walk``; ``--clip`` takes any bundled clip 
 
 Methods (``inference.pipeline.DrapeOptions``): default = ``DrapeOptions()`` as the service runs a
 request that names no method (the sheet's title says what each garment ran), learned = fit 'learned' + dynamics 'learned', retarget = fit 'retarget' + dynamics 'none',
-lbs = fit 'none' + dynamics 'none', canonical = fit 'canonical' + dynamics 'none'. With dynamics the clip is draped from frame 0 up to the last
+lbs = fit 'none' + dynamics 'none', canonical = fit 'canonical' + dynamics 'none', canonical-learned = fit
+'canonical' + dynamics 'learned'. With dynamics the clip is draped from frame 0 up to the last
 moment shown (the wrinkle GRU's state builds up as at run time); without, each frame is
 independent and only the moments shown are draped (the arms are lifted over the whole clip first,
 as the pipeline would).
@@ -73,6 +74,7 @@ METHODS: dict[str, DrapeOptions] = {
     "retarget": DrapeOptions(fit="retarget", dynamics="none"),
     "lbs": DrapeOptions(fit="none", dynamics="none"),
     "canonical": DrapeOptions(fit="canonical", dynamics="none"),
+    "canonical-learned": DrapeOptions(fit="canonical", dynamics="learned"),
 }
 VIEWS = ("front", "back")
 FIRST_FRACTION, LAST_FRACTION = 0.2, 0.8  # of the clip's frames, where the moments are taken

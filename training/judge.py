@@ -60,7 +60,7 @@ from inference.body import NEUTRAL_PHENOTYPES, BodyModel
 from inference.defaults import ASSETS_DIR, DEFAULTS_FILE
 from inference.garment import GarmentCatalog
 from inference.learned import MissingModelError
-from inference.metrics import collision_rates, realism, unsigned_distance
+from inference.metrics import collision_rates, realism, skin_crossings, unsigned_distance
 from inference.pipeline import DrapeOptions, PoseSequence, drape
 from training.protocol import BODIES, SPLITS, Case, case_motion, load_clip
 from training.reference import REFERENCE_DIR, ReferenceSettings, reference_path
@@ -97,6 +97,7 @@ REALISM_MARGINS = {
     "edge_p99": 0.10,        # 99th-percentile edge ratio at most 0.10 above the reference's
     "roughness_ratio": 1.5,  # RMS hinge angle at most 1.5x the reference's
     "jump_ratio": 1.5,       # largest frame-to-frame jump at most 1.5x the reference's
+    "skin_pairs": 10.0,      # body-garment crossing pairs per frame at most 10 above the reference's
 }
 
 
@@ -107,13 +108,19 @@ RETARGET_TOLERANCE = {
     "edge_p99": 0.05,        # 99th-percentile edge ratio at most 0.05 above the retarget's
     "roughness_ratio": 1.15,  # RMS hinge angle at most 1.15x the retarget's
     "jump_ratio": 1.25,      # largest frame-to-frame jump at most 1.25x the retarget's
+    "skin_pairs": 1.5,       # body-garment crossing pairs per frame at most 1.5x the retarget's
 }
+# The metric whose margin adds to the reference's value but multiplies the retarget's (the
+# retarget's crossing count grows with the body's bulges; the reference's stays near 0).
+SKIN_METRIC = "skin_pairs"
 
 
-def realism_failures(metrics: dict, anchor: dict, margins: dict[str, float] = REALISM_MARGINS) -> list[str]:
+def realism_failures(metrics: dict, anchor: dict, margins: dict[str, float] = REALISM_MARGINS, skin_ratio: bool = False) -> list[str]:
     """Names of the realism metrics on which ``metrics`` is worse than ``anchor`` (both
-    ``inference.metrics.realism`` dicts) by more than ``margins``: additive for folded % and the
-    edge percentiles, multiplicative for roughness and jumps."""
+    ``inference.metrics.realism`` dicts, with ``skin_pairs`` from ``inference.metrics.skin_crossings``
+    where both have it) by more than ``margins``: additive for folded % and the edge percentiles,
+    multiplicative for roughness and jumps; for the skin crossings additive against the reference's
+    margin and multiplicative with ``skin_ratio`` (against the retarget: ``SKIN_METRIC``)."""
     out = []
     if metrics["folded_pct"] > anchor["folded_pct"] + margins["folded_pct"]:
         out.append("folded_pct")
@@ -125,13 +132,17 @@ def realism_failures(metrics: dict, anchor: dict, margins: dict[str, float] = RE
         out.append("roughness")
     if metrics["jump_max_m"] > margins["jump_ratio"] * anchor["jump_max_m"]:
         out.append("jump")
+    if SKIN_METRIC in metrics and SKIN_METRIC in anchor:
+        m, a = metrics[SKIN_METRIC], anchor[SKIN_METRIC]
+        if (m > margins[SKIN_METRIC] * a) if skin_ratio else (m > a + margins[SKIN_METRIC]):
+            out.append("skin")
     return out
 
 
 def worse_on_realism(metrics: dict, reference: dict, retarget: dict) -> list[str]:
     """The realism metrics a method fails (module docstring): worse than the reference by
     ``REALISM_MARGINS`` and worse than the retarget baseline by ``RETARGET_TOLERANCE``."""
-    vs_retarget = set(realism_failures(metrics, retarget, RETARGET_TOLERANCE))
+    vs_retarget = set(realism_failures(metrics, retarget, RETARGET_TOLERANCE, skin_ratio=True))
     return [f for f in realism_failures(metrics, reference) if f in vs_retarget]
 
 
@@ -221,6 +232,7 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
     row = {"garment": garment, "case": case.name, "clip": case.clip, "body": case.body, "frames": case.frames,
            "reference": {"seconds_per_frame": ref_meta["seconds_per_frame"], "settings": ref_meta["settings"]}}
     ref_realism = realism(ref, asset.faces, asset.rest_vertices, asset.edges)
+    ref_realism[SKIN_METRIC] = skin_crossings(ref, asset.faces, ref_body, body.faces)
     row["reference"].update(realism=ref_realism, collisions=_collisions(ref, ref_body, body.faces), energies=_energies(asset, ref))
     row["reference"]["uncertainty_cm"] = {}
     for name, settings in UNCERTAINTY.items():
@@ -247,7 +259,8 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
         r = {
             "error_cm": mean_error_cm(v_after, ref),
             "error_before_cm": mean_error_cm(v_before, ref),
-            "realism": realism(v_after, asset.faces, asset.rest_vertices, asset.edges),
+            "realism": {**realism(v_after, asset.faces, asset.rest_vertices, asset.edges),
+                        SKIN_METRIC: skin_crossings(v_after, asset.faces, body_frames, body.faces)},
             "collisions_before": _collisions(v_before, body_frames, body.faces),
             "collisions_after": _collisions(v_after, body_frames, body.faces),
             "energies": _energies(asset, v_before),
@@ -382,8 +395,8 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         if missing and missing.get(split):
             lines += [f"Not simulated (no reference, so not judged): {', '.join(missing[split])}. "
                       "`python -m training.reference --garment G --split " + split + "` fills them in.", ""]
-        lines += ["| garment | case | method | error cm (mu 0.3) | error cm (mu 0) | edge p1 | edge p99 | folded % | rough deg | jump max cm | inside % before / after | strain+bend J | ms/frame | realism vs newton | worse |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += ["| garment | case | method | error cm (mu 0.3) | error cm (mu 0) | edge p1 | edge p99 | folded % | rough deg | jump max cm | skin pairs | inside % before / after | strain+bend J | ms/frame | realism vs newton | worse |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             ref = r["reference"]
             rr = ref["realism"]
@@ -396,14 +409,14 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
             dressed = slid + ("" if ref.get("dressed", True) else "; NOT DRESSED")
             lines.append(f"| {r['garment']} | {r['case']} | **newton** ({ref['seconds_per_frame']:.1f} s/frame; spread {unc_txt}{dressed}) | 0 | "
                          f"{_fmt(unc['friction 0']) if 'friction 0' in unc else '-'} | {_fmt(rr['edge_p1'])} | {_fmt(rr['edge_p99'])} | {_fmt(rr['folded_pct'])} | "
-                         f"{_fmt(rr['roughness_deg'], 1)} | {_fmt(100 * rr['jump_max_m'], 1)} | {_fmt(ref['collisions']['inside_pct_clean'], 3)} | "
+                         f"{_fmt(rr['roughness_deg'], 1)} | {_fmt(100 * rr['jump_max_m'], 1)} | {_skin(rr)} | {_fmt(ref['collisions']['inside_pct_clean'], 3)} | "
                          f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | - | | |")
             for name, m in r["methods"].items():
                 mr = m["realism"]
                 e = m["energies"]
                 lines.append(f"| {r['garment']} | {r['case']} | {name} | {_fmt(m['error_cm'])} | {_fmt(m['error_friction0_cm']) if 'error_friction0_cm' in m else '-'} | "
                              f"{_fmt(mr['edge_p1'])} | {_fmt(mr['edge_p99'])} | {_fmt(mr['folded_pct'])} | {_fmt(mr['roughness_deg'], 1)} | "
-                             f"{_fmt(100 * mr['jump_max_m'], 1)} | {_fmt(m['collisions_before']['inside_pct_clean'], 3)} / {_fmt(m['collisions_after']['inside_pct_clean'], 3)} | "
+                             f"{_fmt(100 * mr['jump_max_m'], 1)} | {_skin(mr)} | {_fmt(m['collisions_before']['inside_pct_clean'], 3)} / {_fmt(m['collisions_after']['inside_pct_clean'], 3)} | "
                              f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | {_fmt(m['ms_per_frame'], 1)} | {', '.join(m['realism_vs_reference'])} | {', '.join(m['realism_failures'])} |")
         lines.append("")
         summary = _summary(rows)
@@ -414,6 +427,11 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         lines += [f"| {g} | {d['fit']} | {d['dynamics']} | {d['reason']} |" for g, d in sorted(defaults.items())]
         lines.append("")
     return "\n".join(lines)
+
+
+def _skin(realism_row: dict) -> str:
+    """The skin crossings' cell: pairs per frame, '-' in a row judged before the metric existed."""
+    return f"{realism_row[SKIN_METRIC]:.0f}" if SKIN_METRIC in realism_row else "-"
 
 
 def _summary(rows: list[dict]) -> list[str]:
@@ -437,12 +455,16 @@ def _row_key(case: Case, garment: str, reference_dir: Path) -> str:
 
     import inference.canonical
     import inference.diffused
+    import inference.intersections
     import inference.pipeline
     import inference.repair
     import inference.strain
+    import inference.winding
+    import inference.winding_kernels
 
     h = hashlib.sha256(Path(inspect.getsourcefile(realism)).read_bytes())
-    for module in (inference.pipeline, inference.repair, inference.canonical, inference.diffused, inference.strain):  # what the methods run
+    for module in (inference.pipeline, inference.repair, inference.canonical, inference.diffused, inference.strain,  # what the methods run
+                   inference.winding, inference.winding_kernels, inference.intersections):
         h.update(Path(inspect.getsourcefile(module)).read_bytes())
     for fn in (judge_case, realism_failures, worse_on_realism, slid_pct, carried_vertices, mean_error_cm, _energies, _collisions):
         h.update(inspect.getsource(fn).encode())
