@@ -20,7 +20,8 @@ plane targets are all inside (a fold between two parts).
 
 Clearance: a point on the skin, or a fraction of a millimetre off it, leaves the skin's bulges
 free to cross the cloth's triangles between the points (under the chest and on the upper arm of a
-heavy body, the renders show the skin through the cloth). So the test is against the body
+heavy body, the renders show the skin through the cloth). So the outermost layer's test (a single
+garment's; ``repair_layers`` says why not the layers under it) is against the body
 inflated by CLEARANCE_M along its vertex normals (``inference.winding.inflated``), or the body
 itself, whichever holds the point ("either": in a crease the inflated copy need not hold the
 body), in one grid binned over both; the targets lie at least CLEARANCE_SLACK_M beyond the
@@ -127,9 +128,12 @@ def repair_layers(
     frames: layers each (B, T, N_i, 3), margins_m one per layer; returns the repaired layers and
     the number of point-frames left inside.
 
-    clearance_m: the test runs against the body inflated by this much along its vertex normals,
-    so points closer to the skin than it move too (default CLEARANCE_M; 0 tests the body itself);
-    a layer's targets lie at least CLEARANCE_SLACK_M beyond it."""
+    clearance_m: the outermost layer's test runs against the body inflated by this much along
+    its vertex normals, so its points closer to the skin than it move too (default CLEARANCE_M; 0
+    tests the body itself); its targets lie at least CLEARANCE_SLACK_M beyond it. The layers under
+    it keep the body's own test: lifted by the clearance, an inner layer would cross an outer one
+    that lies closer to the skin than that (T-shirt under jacket on the heavy body, dance clip:
+    0.64 % of the T-shirt's vertices beyond the jacket against 0.23 %)."""
     layers = [np.asarray(p) for p in layers]
     Bv = np.asarray(body)
     for p in layers:
@@ -150,7 +154,10 @@ def repair_layers(
     k = int(min(k, len(skin_ids)))
     if clearance_m is None:
         clearance_m = CLEARANCE_M
-    offsets = [max(m, clearance_m + CLEARANCE_SLACK_M) if clearance_m > 0.0 else m for m in margins_m]
+    cleared = [clearance_m > 0.0 and i == len(layers) - 1 for i in range(len(layers))]
+    offsets = [max(m, clearance_m + CLEARANCE_SLACK_M) if c else m for m, c in zip(margins_m, cleared)]
+    # the winding test per layer in the block's grid (below): the inflated copy or the body
+    meshes = ["either" if c else ("second" if clearance_m > 0.0 else "first") for c in cleared]
     far = int(min(FAR_FACTOR * k, len(skin_ids)))
     out = [p.reshape(B * T, p.shape[2], 3).copy() for p in layers]
     left = 0
@@ -160,9 +167,9 @@ def repair_layers(
         # copy's normals across each other, it need not hold the body); one grid for both
         grid = (WindingGrid(inflated(Bv[sl], body_faces, clearance_m), body_faces, second=Bv[sl]) if clearance_m > 0.0
                 else WindingGrid(Bv[sl], body_faces))
-        mesh = "either" if clearance_m > 0.0 else "first"
         for i, P in enumerate(out):
             Pb = P[sl]  # a view: the moves write into P
+            mesh = meshes[i]
             frame, idx = np.nonzero(grid.count(Pb, mesh) > 0)
             if not len(frame):
                 continue
@@ -175,7 +182,7 @@ def repair_layers(
                 ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets)
                 if ok.all():
                     break
-            if clearance_m > 0.0:
+            if cleared[i]:
                 # a point that had to go far (or nowhere) but was only within the clearance, not
                 # inside the body itself (between the arm and the torso), stays where it was
                 far_ = np.flatnonzero(~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M))

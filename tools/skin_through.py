@@ -7,10 +7,10 @@ The final stage guarantees that no garment *vertex* is inside the body; the body
 a garment triangle between its vertices where the cloth lies tight on a bulge (under the chest,
 on the upper arm), and the renders then show the skin through the cloth. Counted with the exact
 triangle-pair test of the layer metrics (``inference.intersections.layer_intersection_faces``,
-the body as the inner layer): pairs per frame, and the body faces involved. Crossings inside the
-body's own self-intersections (the armpit) are included; the retarget, which wraps the body
-loosely, shows the level they give. Cases: the split's (``training.protocol.SPLITS``), plus the
-light-tall body on the validation clip.
+the body as the inner layer): pairs per frame, and the body faces involved; and the judge's
+realism metric (``inference.metrics.skin_crossings``): the pairs on visible body faces, not inside
+the body's own self-intersections (the armpit). Cases: the split's (``training.protocol.SPLITS``),
+plus the light-tall body on the validation clip.
 """
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ from inference.body import BodyModel  # noqa: E402
 from inference.garment import GarmentCatalog  # noqa: E402
 from inference.intersections import layer_intersection_faces  # noqa: E402
 from inference.learned import MissingModelError  # noqa: E402
+from inference.metrics import skin_crossings  # noqa: E402
 from inference.pipeline import DrapeOptions, drape  # noqa: E402
 from training.protocol import SPLITS, Case, case_motion  # noqa: E402
 
@@ -50,8 +51,10 @@ def main() -> None:
             except MissingModelError:
                 continue
             window = slice(start, start + case.frames)
-            crossed = layer_intersection_faces(r.body_vertices[window], body.faces, r.garments[0].vertices[window], g.faces)
-            out.append(f"{name} {crossed.sum(1).mean():.0f} pairs ({(crossed > 0).sum(1).mean():.0f} body faces)")
+            bv, gv = r.body_vertices[window], r.garments[0].vertices[window]
+            crossed = layer_intersection_faces(bv, body.faces, gv, g.faces)
+            seen = skin_crossings(gv, g.faces, bv, body.faces)
+            out.append(f"{name} {crossed.sum(1).mean():.0f} pairs ({(crossed > 0).sum(1).mean():.0f} body faces; {seen:.0f} visible)")
         print(f"{case.name:28s}", " | ".join(out), flush=True)
 
 
