@@ -71,6 +71,9 @@ log = logging.getLogger(__name__)
 # the same cost (the winding grid dominates: 10-15 ms per garment-frame); 32 is headroom for
 # overlaps deeper than a walk makes.
 REPAIR_CANDIDATES = 32
+# The first pass asks only this many, the nearest (most points, and every one within the
+# clearance, find theirs there); a point with no outside target among them asks REPAIR_CANDIDATES.
+NEAR_CANDIDATES = 8
 # Points with no outside target among those try this many times more (not needed on 02_02).
 FAR_FACTOR = 16
 # Half-width added around a frame's points inside for the skin vertices of their local KD-tree
@@ -176,7 +179,7 @@ def repair_layers(
             ok = np.zeros(len(frame), bool)
             start = Pb[frame, idx]
             trees: dict[int, cKDTree] = {}  # the posed skin's KD-tree per frame, built once
-            for kk in (k, far):  # deep in an overlap every near target is inside too: look farther
+            for kk in (min(NEAR_CANDIDATES, k), k, far):  # deep in an overlap every near target is inside too: look farther
                 rem = np.flatnonzero(~ok)
                 targets = _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, offsets[i], kk, trees)
                 ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets)

@@ -109,7 +109,7 @@ def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, start, fill,
                     fill[cell] = s + 1
 
 
-@numba.njit(**_JIT)
+@numba.njit(inline="always", **_JIT)
 def _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip):
     """The signed crossing (-1, 0 or +1) of the ray from (pu, pyy, pv) with face f of the frame
     at vertex offset ``base``: inside the face's projection by its canonical edge functions and
