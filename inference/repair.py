@@ -29,8 +29,8 @@ clearance. A point outside the body whose nearest free target is more than BAND_
 its offset (in the gap between an arm and the torso) stays where it is: only points inside the
 body must move, whatever the distance. On the validation walk (02_02, 20 frames; ``python
 tools/skin_through.py``), the learned canonical T-shirt's crossing pairs on visible body faces
-fall from 29 / 277 / 298 per frame (neutral / heaviest / light-tall) to 10 / 53 / 69, where the
-retarget baseline has 30 / 39 / 47; 2-9 % of the vertices move, p99 1.6-3.4 mm.
+fall from 29 / 277 / 298 per frame (neutral / heaviest / light-tall) to 10 / 53 / 54, where the
+retarget baseline has 31 / 39 / 46; 2-9 % of the vertices move, p99 1.6-3.4 mm.
 
 (a point with no outside target among them tries FAR_FACTOR times more candidates; one with
 none there either stays where it is, is counted and logged). The targets lie on the outer surface
