@@ -188,9 +188,9 @@ def repair_layers(
             if cleared[i]:
                 # a point that had to go far (or nowhere) but was only within the clearance, not
                 # inside the body itself (between the arm and the torso), stays where it was
-                far_ = np.flatnonzero(~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M))
-                if len(far_):
-                    band = far_[grid.count_at(start[far_], frame[far_], "second") == 0]
+                went_far = np.flatnonzero(~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M))
+                if len(went_far):
+                    band = went_far[grid.count_at(start[went_far], frame[went_far], "second") == 0]
                     Pb[frame[band], idx[band]] = start[band]
                     ok[band] = True
             left += int((~ok).sum())
