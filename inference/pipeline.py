@@ -49,7 +49,7 @@ from inference.learned import LearnedGarment, LearnedModels, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
 from inference.options import DrapeOptions
-from inference.repair import repair_layers
+from inference.repair import LayerOrder, repair_layers
 
 
 @dataclass(frozen=True)
@@ -326,7 +326,9 @@ def drape(
         # garment has this stage alone at every level but 'off'
         if options.guard_exact or all(m.fit == "canonical" for m in methods):
             with timer("repair"):
-                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin)[0]
+                # an outfit's inner points moved out of the body stay under the outer layers where they can
+                order = LayerOrder(anchors, [g.faces for g in garments]) if len(garments) > 1 and anchors is not None else None
+                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin, order=order)[0]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0], method=m) for g, p, m in zip(garments, posed, methods)],

@@ -156,3 +156,45 @@ def test_points_within_the_clearance_move_out_unless_only_a_far_target_is_free()
     # with no clearance, only points inside the body move
     out0, _ = exact_repair(p, v[None, None], f, margin_m=0.002, clearance_m=0.0)
     np.testing.assert_array_equal(out0, p)
+
+
+def _sphere_and_cover(patch: bool):
+    """A unit sphere (the body), a point of an inner layer 2 cm inside it under its top vertex (the
+    point's anchor), and an outer layer 4 mm over the skin: a 4 cm square patch over that vertex
+    (room beside it), or a whole shell (no room under it at a 1 cm margin)."""
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    body = s.vertices.astype(np.float32)
+    top = int(np.argmax(body[:, 2]))
+    inner = (0.98 * body[top])[None]
+    if patch:
+        w, (x, y) = 0.02, body[top, :2] + [0.003, 0.007]  # off the diagonal: no ray through an edge
+        outer = np.array([[x - w, y - w, 1.004], [x + w, y - w, 1.004], [x + w, y + w, 1.004], [x - w, y + w, 1.004]], np.float32)
+        outer_faces = np.array([[0, 1, 2], [0, 2, 3]])
+    else:
+        from scipy.spatial.transform import Rotation
+
+        turn = Rotation.from_rotvec([0.011, 0.017, 0.0]).as_matrix()  # its vertices off the anchor's ray
+        outer, outer_faces = (1.004 * body @ turn.T).astype(np.float32), s.faces
+    return body, s.faces, inner, outer, outer_faces, [np.array([top]), np.zeros(len(outer), np.int64)]
+
+
+def test_an_inner_point_leaves_the_body_under_the_outer_layer_where_a_target_allows():
+    from inference.layers import anchor_crossings
+    from inference.repair import LayerOrder, repair_layers
+
+    for under in (True, False):
+        body, faces, inner, patch, patch_faces, anchors = _sphere_and_cover(patch=under)
+        layers = [inner[None, None], patch[None, None]]
+        plain, _ = repair_layers(layers, body[None, None], faces, [0.01, 0.01], clearance_m=0.0)
+        ordered, left = repair_layers(layers, body[None, None], faces, [0.01, 0.01], clearance_m=0.0,
+                                      order=LayerOrder(anchors, [np.zeros((0, 3), np.int64), patch_faces]))
+        assert left == 0
+        np.testing.assert_array_equal(ordered[1], layers[1])  # the outermost layer is not moved for the order
+        for out in (plain, ordered):  # out of the body either way: the body comes first
+            assert not winding_numbers(out[0][0], body[None], faces).any()
+
+        def beyond(out):
+            return anchor_crossings(out[0][0], body[None, anchors[0]], patch[None], patch_faces)[0][0, 0] % 2 == 1
+
+        assert beyond(plain)  # straight out, through the patch
+        assert beyond(ordered) != under
