@@ -51,13 +51,13 @@ frame, median 9.5-9.9 mm, at most 35.5 mm (vertex targets alone: median 12-15 mm
 none inside. The pipeline runs it
 last, after the guard and the layers' pushes, on every layer with that layer's body margin.
 
-Cost per frame, one thread (``python bench/bench_canonical.py``: the static canonical T-shirt on
-the heavy body, ~47 points inside per frame): the winding grid of the body (~2.5 ms, once per
-block of frames, shared by the layers), the count at the garment's vertices (~1.6 ms for 5k), and,
-for the frames with points inside, a KD-tree of the skin vertices near them and the count at the
-targets (~2 ms): ~6 ms in all before the clearance; it adds the inflated copy (~0.3 ms), a
-grid over both and counts against both (~1-2 ms), and the points within it (bench table in
-docs/benchmarks.md).
+Cost per frame, one thread (``python bench/bench_canonical.py``, the learned T-shirt on the heavy
+body, ~400 points within the clearance per frame; session 31): the winding grid of the body over
+the garments' region (REGION_M; ~0.9 ms, once per block of frames, shared by the layers, with the
+inflated copy ~0.15 ms), the count at the garment's 5,148 vertices (~1.5 ms), and for the points
+within the clearance one KD-tree of the block's nearby skin vertices, their targets and the count
+at them (~2.8 ms): ~5.3 ms in all, against ~7.1 with a grid of the whole body and a KD-tree per
+frame (bench table in docs/benchmarks.md).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -71,6 +71,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from inference import repair_kernels as kernels
 from inference.errors import InputShapeError
 from inference.layers import LayerFrames
 from inference.mesh import face_normals, major_components, vertex_face_incidence
@@ -92,6 +93,9 @@ FAR_FACTOR = 16
 # (_posed_targets): the 32nd nearest skin vertex of a point inside the T-shirt's posed body lies
 # 4.9 cm away (median; p99 8.5 cm, 30 frames of the heavy body on 02_02).
 NEAR_BOX_M = 0.1
+# The block's frames share one KD-tree of their local skin vertices, frame f shifted by
+# f FRAME_SHIFT_M along x (far beyond a body's size; float64 keeps micrometres at 16 km).
+FRAME_SHIFT_M = 1000.0
 # The points tested are those inside the body inflated by CLEARANCE_M (module doc): a point on the
 # skin leaves the skin's bulges free to cross its triangles. They move at least CLEARANCE_SLACK_M
 # beyond it, so that their targets are not on the inflated surface.
@@ -100,6 +104,11 @@ CLEARANCE_SLACK_M = 0.001
 # A point within the clearance but outside the body moves at most this much beyond its target
 # offset; farther targets (around an arm that presses on the torso) leave it where it is.
 BAND_MOVE_M = 0.003
+# The winding grid bins only the body faces over the garments' points widened by this much (in
+# the grid's x-z plane; ``inference.winding.WindingGrid``'s region): a quarter to a third of the
+# body's faces, 0.9 against 1.8 ms per frame (heavy body, T-shirt). A target beyond it (a point
+# deep in an overlap whose nearest free skin lies farther) is answered by a grid of the whole body.
+REGION_M = 0.1
 # Targets tested per point at a time, nearest first.
 ROUND = 4
 
@@ -188,8 +197,9 @@ def repair_layers(
         sl = slice(f0, f0 + FRAME_BLOCK)
         # inside the body or its inflated copy ("either": where a crease of the skin folds the
         # copy's normals across each other, it need not hold the body); one grid for both
-        grid = (WindingGrid(inflated(Bv[sl], body_faces, clearance_m), body_faces, second=Bv[sl]) if clearance_m > 0.0
-                else WindingGrid(Bv[sl], body_faces))
+        region = _region([o[sl] for o in out])
+        grid = (WindingGrid(inflated(Bv[sl], body_faces, clearance_m), body_faces, second=Bv[sl], region=region)
+                if clearance_m > 0.0 else WindingGrid(Bv[sl], body_faces, region=region))
         for i in range(len(out) - 1, -1, -1):  # outside in: an inner layer's targets see the outer layers' final places
             Pb = out[i][sl]  # a view: the moves write into out[i]
             mesh = meshes[i]
@@ -225,30 +235,47 @@ def repair_layers(
     return [P.reshape(B, T, -1, 3) for P in out], left
 
 
+def _region(layers: list[np.ndarray]) -> np.ndarray:
+    """Per frame, the (x min, x max, z min, z max) of the layers' points (each (T, N_i, 3)) widened
+    by REGION_M: the part of the winding grid's plane that the points and their targets ask."""
+    lo = np.min([p[..., [0, 2]].min(1) for p in layers], 0) - REGION_M
+    hi = np.max([p[..., [0, 2]].max(1) for p in layers], 0) + REGION_M
+    return np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], -1).astype(np.float64)
+
+
 def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees: dict) -> np.ndarray:
     """Targets (n, k, 3) on the k posed skin vertices nearest to each point.
 
-    Per frame, a KD-tree of only the skin vertices within NEAR_BOX_M of the box of that frame's
-    points answers every point whose k-th neighbour lies within NEAR_BOX_M (its ball is then
-    inside the box: the same neighbours as the whole skin's); the others ask the whole skin's
-    tree, built once per frame and kept in ``trees`` for the next pass."""
+    One KD-tree over the block's frames answers every point whose k-th neighbour lies within
+    NEAR_BOX_M: the skin vertices within NEAR_BOX_M of the box of each frame's points, each frame
+    shifted FRAME_SHIFT_M along x so that a point's neighbours are those of its own frame (its
+    ball then lies inside the box: the same neighbours as the whole skin's). The others ask the
+    whole skin's tree of their frame, built once per frame and kept in ``trees`` for the next pass."""
+    q = Pb[frame, idx]
+    frames, fpos = np.unique(frame, return_inverse=True)
+    lo = np.full((len(frames), 3), np.inf, q.dtype)
+    hi = np.full((len(frames), 3), -np.inf, q.dtype)
+    np.minimum.at(lo, fpos, q)
+    np.maximum.at(hi, fpos, q)
+    fi, si = kernels.vertices_in_boxes(np.ascontiguousarray(Bb, np.float32), frames.astype(np.int64), skin_ids, lo - NEAR_BOX_M,
+                                       hi + NEAR_BOX_M)
+    shift = np.array([FRAME_SHIFT_M, 0.0, 0.0])
     ids = np.empty((len(frame), k), np.int64)
-    for f in np.unique(frame):  # C code
-        sel = np.flatnonzero(frame == f)
-        q = Pb[f, idx[sel]]
-        skin = Bb[f, skin_ids]
-        near = np.flatnonzero(np.all((skin >= q.min(0) - NEAR_BOX_M) & (skin <= q.max(0) + NEAR_BOX_M), axis=1))
-        todo = np.arange(len(sel))
-        if len(near) >= k:
-            dist, nn = cKDTree(skin[near], balanced_tree=False, compact_nodes=False).query(q, k=k)
-            found = dist.reshape(len(sel), k)[:, -1] <= NEAR_BOX_M
-            ids[sel[found]] = skin_ids[near[nn.reshape(len(sel), k)[found]]]
-            todo = np.flatnonzero(~found)
-        if len(todo):
-            if f not in trees:
-                trees[f] = cKDTree(skin)
-            ids[sel[todo]] = skin_ids[trees[f].query(q[todo], k=k)[1].reshape(len(todo), k)]
-    return _targets(Bb, frame, ids, skin_faces, margin_m, Pb[frame, idx])
+    todo = np.arange(len(frame))
+    if len(si) >= k:
+        tree = cKDTree(Bb[frames[fi], skin_ids[si]] + fi[:, None] * shift, balanced_tree=False, compact_nodes=False)
+        dist, nn = tree.query(q + fpos[:, None] * shift, k=k)
+        dist, nn = dist.reshape(len(q), k), nn.reshape(len(q), k)
+        # within NEAR_BOX_M the k nearest are of the point's own frame (the shift is far larger)
+        found = dist[:, -1] <= NEAR_BOX_M
+        ids[found] = skin_ids[si[nn[found]]]
+        todo = np.flatnonzero(~found)
+    for f in np.unique(frame[todo]):  # C code
+        sel = todo[frame[todo] == f]
+        if f not in trees:
+            trees[f] = cKDTree(Bb[f, skin_ids])
+        ids[sel] = skin_ids[trees[f].query(q[sel], k=k)[1].reshape(len(sel), k)]
+    return _targets(Bb, frame, ids, skin_faces, margin_m, q)
 
 
 @functools.lru_cache(maxsize=4)

@@ -27,35 +27,44 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 # |x| 2^-24 (6e-8 |x|), so a box widened by 1e-6 (1 + |x|) before the rounding still holds
 # every point the float64 box holds; the pre-test only skips faces, the exact test follows.
 BOX_SLACK = 1e-6
+# The count of a point outside a grid's region (``count_crossings``).
+UNKNOWN = -(2**30)
 
 
-@numba.njit(**_JIT)
-def _cells(u, v, u2, v2, a, c, d, lo_u, lo_v, inv_h):
+@numba.njit(inline="always", **_JIT)
+def _cells(u, v, u2, v2, a, c, d, lo_u, lo_v, inv_h, r0, r1, r2, r3, ni, nj):
     """(i0, i1, j0, j1): the cells covered by the projected box of the face with vertices a, c, d
-    in both vertex sets (u, v) and (u2, v2) (the same arrays when a grid holds one mesh); i1 < i0
-    for a face of zero projected area in both (it never counts)."""
+    in both vertex sets (u, v) and (u2, v2) (the same arrays when a grid holds one mesh), clipped
+    to the grid's ni x nj cells; i1 < i0 for a face of zero projected area in both (it never
+    counts) or one whose box misses the frame's region (r0, r1, r2, r3) = (u min, u max, v min, v max)."""
     u0, u1, u2_ = u[a], u[c], u[d]
     v0, v1, v2_ = v[a], v[c], v[d]
     s0, s1, s2 = u2[a], u2[c], u2[d]
     t0, t1, t2 = v2[a], v2[c], v2[d]
     if (u1 - u0) * (v2_ - v0) - (v1 - v0) * (u2_ - u0) == 0.0 and (s1 - s0) * (t2 - t0) - (t1 - t0) * (s2 - s0) == 0.0:
         return 1, 0, 1, 0
-    i0 = int(np.floor((min(u0, u1, u2_, s0, s1, s2) - lo_u) * inv_h))
-    i1 = int(np.floor((max(u0, u1, u2_, s0, s1, s2) - lo_u) * inv_h))
-    j0 = int(np.floor((min(v0, v1, v2_, t0, t1, t2) - lo_v) * inv_h))
-    j1 = int(np.floor((max(v0, v1, v2_, t0, t1, t2) - lo_v) * inv_h))
+    umin, umax = min(u0, u1, u2_, s0, s1, s2), max(u0, u1, u2_, s0, s1, s2)
+    vmin, vmax = min(v0, v1, v2_, t0, t1, t2), max(v0, v1, v2_, t0, t1, t2)
+    if umax < r0 or umin > r1 or vmax < r2 or vmin > r3:
+        return 1, 0, 1, 0
+    i0 = max(int(np.floor((umin - lo_u) * inv_h)), 0)
+    i1 = min(int(np.floor((umax - lo_u) * inv_h)), ni - 1)
+    j0 = max(int(np.floor((vmin - lo_v) * inv_h)), 0)
+    j1 = min(int(np.floor((vmax - lo_v) * inv_h)), nj - 1)
     return i0, i1, j0, j1
 
 
 @numba.njit(**_JIT)
-def count_pairs(u, v, u2, v2, faces, B, V, inv_h, lo, ni, nj, start):
+def count_pairs(u, v, u2, v2, faces, B, V, inv_h, lo, ni, nj, region, start):
     """First pass of the binning: start[c + 1] = the number of faces of cell c, then its prefix
     sum (start: (B*ni*nj + 1,) int64, overwritten). Returns the number of (cell, face) pairs.
 
     u, v  : (B*V,) float64, every frame's projected vertex coordinates x, z (frame b at b*V)
     u2, v2: the same of a second vertex set of the same faces, binned with it (each face over
             the box of both of its projections), or u, v themselves
-    faces : (F, 3) int64; inv_h: 1 / cell size, 1/metres; lo (B, 2): each frame's grid origin
+    faces : (F, 3) int64; inv_h: 1 / cell size, 1/metres; lo (B, 2): each frame's grid origin;
+    region (B, 4): each frame's (u min, u max, v min, v max), the faces binned are those whose
+    box meets it (a point outside it is answered by no cell: ``count_crossings``)
     (a cell index is floor((x - lo) inv_h), for faces and points alike: monotone in x, so a point
     inside a face's box lands in a cell the face covers)
     """
@@ -64,9 +73,10 @@ def count_pairs(u, v, u2, v2, faces, B, V, inv_h, lo, ni, nj, start):
     start[:] = 0
     for b in range(B):
         base = b * V
+        lo_u, lo_v, r0, r1, r2, r3 = lo[b, 0], lo[b, 1], region[b, 0], region[b, 1], region[b, 2], region[b, 3]
         for f in range(F):
-            i0, i1, j0, j1 = _cells(u, v, u2, v2, base + faces[f, 0], base + faces[f, 1], base + faces[f, 2], lo[b, 0], lo[b, 1],
-                                    inv_h)
+            i0, i1, j0, j1 = _cells(u, v, u2, v2, base + faces[f, 0], base + faces[f, 1], base + faces[f, 2], lo_u, lo_v, inv_h,
+                                    r0, r1, r2, r3, ni, nj)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
                     start[b * cells + i * nj + j + 1] += 1
@@ -76,7 +86,7 @@ def count_pairs(u, v, u2, v2, faces, B, V, inv_h, lo, ni, nj, start):
 
 
 @numba.njit(**_JIT)
-def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, start, fill, cell_face, pair_box):
+def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, region, start, fill, cell_face, pair_box):
     """Second pass: the faces of cell c (face ids f of frame b, in increasing order) in
     cell_face[start[c]:start[c + 1]] (int32), each with its face's box (u min, u max, v min,
     v max, y max; over both vertex sets, as ``count_pairs``) in pair_box (float32, widened by BOX_SLACK so that the pre-test of
@@ -87,9 +97,10 @@ def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, start, fill,
     fill[:] = start[:-1]
     for b in range(B):
         base = b * V
+        lo_u, lo_v, r0, r1, r2, r3 = lo[b, 0], lo[b, 1], region[b, 0], region[b, 1], region[b, 2], region[b, 3]
         for f in range(F):
             a, c, d = base + faces[f, 0], base + faces[f, 1], base + faces[f, 2]
-            i0, i1, j0, j1 = _cells(u, v, u2, v2, a, c, d, lo[b, 0], lo[b, 1], inv_h)
+            i0, i1, j0, j1 = _cells(u, v, u2, v2, a, c, d, lo_u, lo_v, inv_h, r0, r1, r2, r3, ni, nj)
             if i1 < i0:
                 continue
             umin, umax = min(u[a], u[c], u[d], u2[a], u2[c], u2[d]), max(u[a], u[c], u[d], u2[a], u2[c], u2[d])
@@ -136,8 +147,8 @@ def _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, 
 
 
 @numba.njit(**_JIT)
-def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip, V, inv_h, lo, ni, nj, start,
-                    cell_face, pair_box, either):
+def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip, V, inv_h, lo, ni, nj, region,
+                    bounded, start, cell_face, pair_box, either):
     """Winding number at each point: the signed crossings of its ray with the faces of its cell.
 
     points     : (P, 3) float32 or float64, metres; frame (P,) int64: the frame each point is tested in
@@ -147,7 +158,9 @@ def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi,
                  winding numbers (a point inside either mesh counts as inside), in the same pass
     edge_lo, edge_hi, opposite : (F, 3) int64 canonical edge k of each face and the corner opposite
     flip       : (F, 3) bool, edge k runs against the face's own orientation
-    inv_h, lo, ni, nj, start, cell_face, pair_box : the grid (``count_pairs``, ``fill_pairs``)
+    inv_h, lo, ni, nj, region, start, cell_face, pair_box : the grid (``count_pairs``, ``fill_pairs``)
+    bounded    : the region is smaller than the mesh: a point outside it gets UNKNOWN (else 0:
+                 no face is there)
     returns    : (P,) int32
     """
     cells = ni * nj
@@ -156,6 +169,9 @@ def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi,
     for p in range(P):
         b = frame[p]
         pu, pv, pyy = np.float64(points[p, 0]), np.float64(points[p, 2]), np.float64(points[p, 1])
+        if not (region[b, 0] <= pu <= region[b, 1] and region[b, 2] <= pv <= region[b, 3]):
+            w[p] = UNKNOWN if bounded else 0
+            continue
         i = int(np.floor((pu - lo[b, 0]) * inv_h))
         j = int(np.floor((pv - lo[b, 1]) * inv_h))
         if i < 0 or i >= ni or j < 0 or j >= nj:

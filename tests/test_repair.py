@@ -113,6 +113,31 @@ def test_layers_share_the_body_and_keep_their_margins():
         repair_layers([inner, outer], body, f, [0.005])
 
 
+def test_a_grid_over_a_region_bins_fewer_faces_and_answers_every_point():
+    """Only the faces over each frame's region are binned; points inside it are answered by them,
+    points beyond it by a grid of the whole mesh, so every count equals the whole grid's."""
+    v, f = _two_spheres()
+    frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)
+    big = inflated(frames, f, 0.05)
+    region = np.array([[-0.3, 0.3, -0.5, 0.2], [0.5, 1.2, 2.0, 3.5]])  # (x min, x max, z min, z max)
+    grid = WindingGrid(big, f, second=frames, region=region)
+    whole = WindingGrid(big, f, second=frames)
+    assert len(grid.cell_face) < len(whole.cell_face) / 2
+    rng = np.random.default_rng(3)
+    inner = np.stack([rng.uniform(region[b, [0, 0, 2]], region[b, [1, 1, 3]], (1500, 3)) for b in range(2)])
+    inner[..., 1] = rng.uniform(-1.2, 1.2, inner.shape[:2])
+    for mesh in ("first", "second", "either"):
+        np.testing.assert_array_equal(grid.count(inner, mesh), whole.count(inner, mesh))
+    assert grid._whole is None  # nothing beyond the region was asked
+    q = rng.uniform(-2.2, 2.2, (2, 2000, 3)).astype(np.float32)
+    q[1] += [0.0, 0.0, 3.0]
+    for mesh in ("first", "second", "either"):
+        np.testing.assert_array_equal(grid.count(q, mesh), whole.count(q, mesh))
+    assert grid._whole is not None
+    with pytest.raises(InputShapeError):
+        WindingGrid(big, f, region=region[:1])
+
+
 def test_one_grid_answers_for_the_body_its_inflated_copy_or_either():
     v, f = _two_spheres()
     frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)
