@@ -47,8 +47,12 @@ def test_regressor_fits_sequences_and_runs_in_chunks():
 
 def test_regressor_exports_with_parity(tmp_path):
     pytest.importorskip("onnxruntime")
-    from training.canonical_regressor import export_regressor
+    from training.canonical_regressor import HALF_TOLERANCE, export_regressor
 
     model, _ = train_regressor(_sequences(n=2, F=378), 5, RegressorConfig(hidden=16, layers=2, steps=2, window=8, batch=2))
+    full = export_regressor(model, tmp_path / "regressor32.onnx", half=False)
+    assert full["parity_max_abs"] <= 1e-4 and full["outputs"]["z"] == ["B", "T", 5] and full["weights"] == "float32"
+    # the shipped form: weights stored as float16, cast back to float32 when the model loads
     out = export_regressor(model, tmp_path / "regressor.onnx")
-    assert out["parity_max_abs"] <= 1e-4 and out["outputs"]["z"] == ["B", "T", 5]
+    assert out["weights"] == "float16" and out["parity_max_abs"] <= HALF_TOLERANCE
+    assert out["bytes"] < 0.65 * full["bytes"]  # biases and small tensors stay float32

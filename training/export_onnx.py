@@ -43,6 +43,8 @@ MODELS_DIR = REPO_ROOT / "assets" / "models"
 OPSET = 17
 PARITY_TOLERANCE_M = 1e-4  # max |torch - onnxruntime| displacement, metres
 MODEL_FORMAT = 1
+# ``half_weights``: the smallest weight tensor stored as float16 (biases and norms stay float32).
+HALF_MIN_SIZE = 1024
 
 
 def _sha256(path: Path) -> str:
@@ -61,6 +63,30 @@ def _add_metadata(path: Path, meta: dict[str, str]) -> None:
         entry = model.metadata_props.add()
         entry.key, entry.value = k, v
     model.producer_name = "tryon training.export_onnx"
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+
+
+def half_weights(path: Path, min_size: int = HALF_MIN_SIZE) -> None:
+    """Store a model's float32 weights of at least ``min_size`` elements as float16, each followed by
+    a Cast back to float32 (in place): half the file, the same float32 arithmetic (onnxruntime folds
+    the casts when it loads the model); the weights are rounded to 11 significant bits."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    model = onnx.load(str(path))
+    graph = model.graph
+    casts, halves = [], []
+    for init in list(graph.initializer):
+        a = numpy_helper.to_array(init)
+        if a.dtype != np.float32 or a.size < min_size:
+            continue
+        halves.append(numpy_helper.from_array(a.astype(np.float16), init.name + "_f16"))
+        casts.append(helper.make_node("Cast", [init.name + "_f16"], [init.name], to=TensorProto.FLOAT, name=init.name + "_cast"))
+        graph.initializer.remove(init)
+    graph.initializer.extend(halves)
+    nodes = list(graph.node)
+    del graph.node[:]
+    graph.node.extend(casts + nodes)
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
 
