@@ -54,9 +54,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from inference import mesh_kernels
 from inference.errors import InputShapeError
 from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
-from inference.mesh import face_normals, vertex_face_incidence
 from inference.winding import check_faces
 
 # How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
@@ -200,13 +200,18 @@ def _smooth_rays(rays: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def anchor_normals(body: np.ndarray, body_faces: np.ndarray, anchors: np.ndarray) -> np.ndarray:
     """Unit area-weighted normals of the posed body at the anchor vertices: (T, N, 3) float64.
 
-    body : (T, Vb, 3) ; body_faces : (F, 3) ; anchors : (N,) vertex ids (only their faces are used)
+    body : (T, Vb, 3) ; body_faces : (F, 3) ; anchors : (N,) vertex ids (only their faces are used;
+    compiled, ``inference.mesh_kernels.normals_at``: ~0.1 ms a frame where the sparse sums of
+    numpy face normals took ~1.2)
     """
+    body = np.ascontiguousarray(body)
+    faces = np.ascontiguousarray(body_faces, np.int64)
     ids, inverse = np.unique(anchors, return_inverse=True)
-    face_ids, inc = vertex_face_incidence(body_faces, body.shape[1], ids)
-    fn = face_normals(body, np.asarray(body_faces)[face_ids], unit=False, dtype=np.float64)  # (T, Fs, 3)
-    n = np.stack([(inc @ fn[t]) for t in range(len(fn))])  # (T, S, 3): sparse sums per frame
-    n /= np.maximum(np.linalg.norm(n, axis=-1), 1e-20)[..., None]
+    slot = np.full(body.shape[1], -1, np.int64)
+    slot[ids] = np.arange(len(ids))
+    face_ids = np.flatnonzero((slot[faces] >= 0).any(1))
+    n = np.empty((body.shape[0], len(ids), 3))
+    mesh_kernels.normals_at(body, faces, face_ids, slot, n)
     return n[:, inverse]
 
 
