@@ -350,3 +350,4 @@ def warm_up() -> None:
     tet = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]], np.float32)
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     anchor_crossings(np.full((1, 1, 3), 0.1, np.float32), np.full((1, 1, 3), 2.0, np.float32), LayerFrames(tet, faces), exiting=True)
+    anchor_normals(tet, faces.astype(np.int32), np.arange(4))

@@ -4,6 +4,10 @@ Units: metres. Arrays: float32, batch axes first.
 """
 from __future__ import annotations
 
+import functools
+import weakref
+from collections import OrderedDict
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
@@ -11,6 +15,36 @@ from scipy.sparse.csgraph import connected_components
 # Mesh components smaller than this fraction of the vertices are accessories (anny's eyes, teeth).
 MAJOR_COMPONENT_FRACTION = 0.1
 NORMAL_BLOCK = 16  # frames per block of vertex_normals (cache-sized temporaries)
+# Arrays whose derived values ``per_array`` keeps per function.
+PER_ARRAY_ENTRIES = 8
+
+
+def per_array(fn):
+    """Cache fn(array, *args) per array *object* (and hashable args): a request's body faces are the
+    one array of the loaded body model, so the topology derived from them (int64 copies, edges,
+    skin faces) is computed once, not from a 0.7 MB hash of the faces per call. An entry holds a
+    weak reference to its array and is used only while that is alive and the same object; the
+    arrays must not be changed in place."""
+    cache: OrderedDict = OrderedDict()
+
+    @functools.wraps(fn)
+    def wrapper(array, *args):
+        key = (id(array), args)
+        hit = cache.get(key)
+        if hit is not None and hit[0]() is array:
+            cache.move_to_end(key)
+            return hit[1]
+        value = fn(array, *args)
+        try:
+            ref = weakref.ref(array)
+        except TypeError:  # a list or a tuple: no weak reference, no cache
+            return value
+        cache[key] = (ref, value)
+        while len(cache) > PER_ARRAY_ENTRIES:
+            cache.popitem(last=False)
+        return value
+
+    return wrapper
 
 
 def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True, dtype: type = np.float32) -> np.ndarray:

@@ -63,7 +63,6 @@ Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
-import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -71,10 +70,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from inference import mesh_kernels
 from inference import repair_kernels as kernels
 from inference.errors import InputShapeError
 from inference.layers import LayerFrames
-from inference.mesh import face_normals, major_components, vertex_face_incidence
+from inference.mesh import major_components, per_array
 from inference.winding import FRAME_BLOCK, WindingGrid, inflated
 
 log = logging.getLogger(__name__)
@@ -178,9 +178,10 @@ def repair_layers(
     B, T = Bv.shape[:2]
     Bv = Bv.reshape(B * T, -1, 3)
     if skin is None:
-        skin = _skin(np.asarray(body_faces), Bv.shape[1])
-    skin_ids = np.flatnonzero(skin)
-    skin_faces = np.asarray(body_faces)[skin[body_faces].all(1)]
+        skin, skin_ids, skin_faces = _skin(body_faces, Bv.shape[1])
+    else:
+        skin_ids = np.flatnonzero(skin)
+        skin_faces = np.asarray(body_faces)[skin[body_faces].all(1)]
     k = int(min(k, len(skin_ids)))
     if clearance_m is None:
         clearance_m = CLEARANCE_M
@@ -278,15 +279,13 @@ def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees:
     return _targets(Bb, frame, ids, skin_faces, margin_m, q)
 
 
-@functools.lru_cache(maxsize=4)
-def _skin_cached(faces_bytes: bytes, shape: tuple[int, int], num_vertices: int) -> np.ndarray:
-    return major_components(np.frombuffer(faces_bytes, np.int64).reshape(shape), num_vertices)
-
-
-def _skin(faces: np.ndarray, num_vertices: int) -> np.ndarray:
-    """``major_components`` of a body's faces, computed once per topology (~5 ms a call)."""
-    f = np.ascontiguousarray(faces, np.int64)
-    return _skin_cached(f.tobytes(), f.shape, num_vertices)
+@per_array
+def _skin(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``major_components`` of a body's faces (~5 ms a call), its vertex ids and the faces among
+    them: once per faces array (``inference.mesh.per_array``)."""
+    faces = np.asarray(faces)
+    skin = major_components(faces, num_vertices)
+    return skin, np.flatnonzero(skin), faces[skin[faces].all(1)]
 
 
 def _targets(Bb, frame, ids, skin_faces, margin_m, points) -> np.ndarray:
@@ -295,12 +294,12 @@ def _targets(Bb, frame, ids, skin_faces, margin_m, points) -> np.ndarray:
     normals (area-weighted) only of the vertices used, in the frames used."""
     frames, fpos = np.unique(frame, return_inverse=True)
     verts, vpos = np.unique(ids, return_inverse=True)
-    face_ids, inc = vertex_face_incidence(skin_faces, Bb.shape[1], verts)
-    fn = face_normals(Bb[frames], skin_faces[face_ids], unit=False)  # (nf, Fs, 3)
-    n = (inc @ fn.transpose(1, 0, 2).reshape(len(face_ids), -1)).reshape(len(verts), len(frames), 3)
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-20)
+    slot = np.full(Bb.shape[1], -1, np.int64)
+    slot[verts] = np.arange(len(verts))
+    n = np.empty((len(frames), len(verts), 3))
+    mesh_kernels.normals_at(Bb[frames], skin_faces, np.flatnonzero((slot[skin_faces] >= 0).any(1)), slot, n)
     vpos = vpos.reshape(ids.shape)
-    c, nc = Bb[frame[:, None], ids], n[vpos, fpos[:, None]]  # (n, k, 3), nearest first
+    c, nc = Bb[frame[:, None], ids], n[fpos[:, None], vpos]  # (n, k, 3), nearest first
     p = np.asarray(points)[:, None, :]
     # never inward: a point already above c_j's plane moves out to the margin, no farther
     depth = np.maximum(np.einsum("nkc,nkc->nk", c - p, nc), -margin_m)
@@ -363,3 +362,13 @@ def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None) -> np.ndarra
     ok = best >= 0
     Pb[frame[ok], idx[ok]] = targets[np.flatnonzero(ok), best[ok]]
     return ok
+
+
+def warm_up() -> None:
+    """Compile this stage's kernels (the winding grid's, ``inference.repair_kernels``,
+    ``inference.mesh_kernels``) or load numba's cache, through one repair of a point inside a
+    tetrahedron with int32 faces (the body model's), so that no request pays a first compilation."""
+    tet = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)[None, None]
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
+    points = np.array([[0.1, 0.1, 0.1], [2.0, 2.0, 2.0]], np.float32)[None, None]
+    exact_repair(points, tet, faces, 0.01)

@@ -37,6 +37,7 @@ import numpy as np
 
 from inference import winding_kernels as kernels
 from inference.errors import InputShapeError
+from inference.mesh import per_array
 
 # Grid cell, in multiples of the median edge length.
 CELL_EDGES = 2.0
@@ -106,6 +107,12 @@ def _topology_cached(faces_bytes: bytes, shape: tuple[int, int]) -> tuple[np.nda
     return tuple(np.ascontiguousarray(a) for a in out)
 
 
+@per_array
+def _checked_topology(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, ...]:
+    """``check_faces`` then ``_topology``, once per faces array (``inference.mesh.per_array``)."""
+    return _topology(check_faces(faces, num_vertices))
+
+
 class WindingGrid:
     """The faces of B frames of one closed mesh, binned for ray-crossing winding numbers.
 
@@ -126,7 +133,8 @@ class WindingGrid:
 
     def __init__(self, verts: np.ndarray, faces: np.ndarray, second: np.ndarray | None = None, region: np.ndarray | None = None):
         verts = _frames("verts", verts)
-        faces = check_faces(faces, verts.shape[1])
+        self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, used = _checked_topology(faces, verts.shape[1])
+        faces = self.faces
         B, V = verts.shape[:2]
         self.B, self.V, self.F = B, V, len(faces)
         sets = [verts] if second is None else [verts, _frames("second", second)]
@@ -141,7 +149,6 @@ class WindingGrid:
         self.coords = [tuple(buf[: B * V] for buf in trio) for trio in bufs]  # (u, v, y) per vertex set, (B*V,) each
         self.u, self.v, self.y = self.coords[0]
         u2, v2, y2 = self.coords[-1]
-        self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, used = _topology(faces)
 
         # grid over each frame's projected mesh (its own origin), cell CELL_EDGES median edges (of
         # every EDGE_SAMPLE-th face's first edge, frame 0)
@@ -253,7 +260,7 @@ def inflated(verts: np.ndarray, faces: np.ndarray, distance_m: float) -> np.ndar
     vertex_normals`` takes ~8): verts (B, V, 3) float, metres -> (B, V, 3) float32. For a small d
     it holds the mesh inside it, and a point outside it is at least ~d from the mesh."""
     verts = np.ascontiguousarray(_frames("verts", verts), np.float32)
-    faces = check_faces(faces, verts.shape[1])
+    faces = _checked_topology(faces, verts.shape[1])[0]
     out = np.empty_like(verts)
     kernels.inflate(verts, faces, float(distance_m), out)
     return out

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Callable
 
-from inference import layers, strain, winding
+from inference import layers, repair, strain, winding
 from inference.asset_digest import AssetDigest
 from inference.batch import DrapeJob, concatenate_results, drape_many
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
@@ -158,6 +158,7 @@ class Runtime:
         if learned:
             loaded += [f"{g} (canonical)" for g in canonical.load_all(catalog.ids())]
             winding.warm_up()  # the exact inside test's compiled kernels, before the first request
+            repair.warm_up()  # the final stage's
             layers.warm_up()  # and the layer stage's
             strain.warm_up()  # and the compression limit's (learned canonical garments)
         runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
