@@ -328,7 +328,7 @@ def drape(
             with timer("repair"):
                 # an outfit's inner points moved out of the body stay under the outer layers where they can
                 order = LayerOrder(anchors, [g.faces for g in garments]) if len(garments) > 1 and anchors is not None else None
-                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin, order=order)[0]
+                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin, order=order, faces=[g.faces for g in garments])[0]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0], method=m) for g, p, m in zip(garments, posed, methods)],

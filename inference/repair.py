@@ -75,7 +75,7 @@ from inference import repair_kernels as kernels
 from inference.errors import InputShapeError
 from inference.layers import LayerFrames
 from inference.mesh import major_components, per_array
-from inference.winding import FRAME_BLOCK, WindingGrid, inflated
+from inference.winding import FRAME_BLOCK, WindingGrid, inflated, ray_down
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +148,7 @@ def repair_layers(
     k: int = REPAIR_CANDIDATES,
     clearance_m: float | None = None,
     order: LayerOrder | None = None,
+    faces: Sequence[np.ndarray] | None = None,
 ) -> tuple[list[np.ndarray], int]:
     """``exact_repair`` of several garments on one body, sharing its winding grid per block of
     frames: layers each (B, T, N_i, 3), margins_m one per layer; returns the repaired layers and
@@ -163,7 +164,11 @@ def repair_layers(
     tests the body itself); its targets lie at least CLEARANCE_SLACK_M beyond it. The layers under
     it keep the body's own test: lifted by the clearance, an inner layer would cross an outer one
     that lies closer to the skin than that (T-shirt under jacket on the heavy body, dance clip:
-    0.64 % of the T-shirt's vertices beyond the jacket against 0.23 %)."""
+    0.64 % of the T-shirt's vertices beyond the jacket against 0.23 %).
+
+    faces: each layer's faces (F_i, 3), outward: a point's inside test then casts its ray along
+    -y where its normal points down y (``inference.winding.ray_down``; the same answers, fewer
+    faces to test); a target's ray follows its move."""
     layers = [np.asarray(p) for p in layers]
     Bv = np.asarray(body)
     for p in layers:
@@ -193,6 +198,8 @@ def repair_layers(
     out = [p.reshape(B * T, p.shape[2], 3).copy() for p in layers]
     if order is not None and (len(order.anchors) != len(layers) or len(order.faces) != len(layers)):
         raise InputShapeError("order", f"anchors and faces of {len(layers)} layers", (len(order.anchors), len(order.faces)))
+    if faces is not None and len(faces) != len(layers):
+        raise InputShapeError("faces", f"faces of {len(layers)} layers", (len(faces),))
     left = 0
     for f0 in range(0, B * T, FRAME_BLOCK):
         sl = slice(f0, f0 + FRAME_BLOCK)
@@ -204,7 +211,8 @@ def repair_layers(
         for i in range(len(out) - 1, -1, -1):  # outside in: an inner layer's targets see the outer layers' final places
             Pb = out[i][sl]  # a view: the moves write into out[i]
             mesh = meshes[i]
-            frame, idx = np.nonzero(grid.count(Pb, mesh) > 0)
+            down = None if faces is None else ray_down(Pb, faces[i])
+            frame, idx = np.nonzero(grid.count(Pb, mesh, down) > 0)
             if not len(frame):
                 continue
             ok = np.zeros(len(frame), bool)
@@ -349,7 +357,9 @@ def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None) -> np.ndarra
     for r0 in range(0, k, ROUND):
         cols = order[pending, r0:r0 + ROUND]
         tried = targets[pending[:, None], cols].reshape(-1, 3)
-        outside = grid.count_at(tried, np.repeat(frame[pending], cols.shape[1]), mesh) == 0
+        # each target's ray along its move's side of y: it leaves the body at once
+        down = tried[:, 1] < np.repeat(Pb[frame[pending], idx[pending], 1], cols.shape[1])
+        outside = grid.count_at(tried, np.repeat(frame[pending], cols.shape[1]), mesh, down) == 0
         if accept is not None and outside.any():
             at = np.flatnonzero(outside)
             outside[at] = accept(np.repeat(frame[pending], cols.shape[1])[at], np.repeat(idx[pending], cols.shape[1])[at], tried[at])

@@ -35,6 +35,7 @@ import weakref
 
 import numpy as np
 
+from inference import mesh_kernels
 from inference import winding_kernels as kernels
 from inference.errors import InputShapeError
 from inference.mesh import per_array
@@ -180,10 +181,10 @@ class WindingGrid:
         start = _POOL.take("start", B * ni * nj + 1, np.int64)
         pairs = int(kernels.count_pairs(self.u, self.v, u2, v2, self.faces, B, V, 1.0 / h, self.lo, ni, nj, self.region,
                                         start[: B * ni * nj + 1]))
-        cell_face, pair_box, fill = (_POOL.take("cell_face", pairs, np.int32), _POOL.take("pair_box", 5 * pairs, np.float32),
+        cell_face, pair_box, fill = (_POOL.take("cell_face", pairs, np.int32), _POOL.take("pair_box", 6 * pairs, np.float32),
                                      _POOL.take("fill", B * ni * nj, np.int64))
         self.start, self.cell_face = start[: B * ni * nj + 1], cell_face[:pairs]
-        self.pair_box = pair_box[: 5 * pairs].reshape(pairs, 5)
+        self.pair_box = pair_box[: 6 * pairs].reshape(pairs, 6)
         kernels.fill_pairs(self.u, self.v, self.y, u2, v2, y2, self.faces, B, V, 1.0 / h, self.lo, ni, nj, self.region, self.start,
                            fill[: B * ni * nj], self.cell_face, self.pair_box)
         for name, buf in zip(("start", "cell_face", "pair_box", "fill"), (start, cell_face, pair_box, fill)):
@@ -192,8 +193,8 @@ class WindingGrid:
             for name, buf in zip(names_, trio):
                 weakref.finalize(self, _POOL.give, name, buf)
 
-    def count(self, points: np.ndarray, mesh: str = "first") -> np.ndarray:
-        """Winding number at each point of each frame (``mesh`` as in ``count_at``).
+    def count(self, points: np.ndarray, mesh: str = "first", down: np.ndarray | None = None) -> np.ndarray:
+        """Winding number at each point of each frame (``mesh`` and ``down`` as in ``count_at``).
 
         points : (B, N, 3) float, metres (frame b against frame b of the mesh)
         returns: (B, N) int32 (0 outside, 1 inside, 2 inside two overlapping parts, ...)
@@ -202,13 +203,19 @@ class WindingGrid:
         if points.shape[0] != self.B:
             raise InputShapeError("points", f"({self.B}, N, 3)", points.shape)
         B, N = points.shape[:2]
-        return self.count_at(points.reshape(B * N, 3), np.repeat(np.arange(B), N), mesh).reshape(B, N)
+        if down is not None:
+            down = np.asarray(down)
+            if down.shape != (B, N):
+                raise InputShapeError("down", f"({B}, {N})", down.shape)
+            down = down.reshape(-1)
+        return self.count_at(points.reshape(B * N, 3), np.repeat(np.arange(B), N), mesh, down).reshape(B, N)
 
-    def count_at(self, points: np.ndarray, frame: np.ndarray, mesh: str = "first") -> np.ndarray:
+    def count_at(self, points: np.ndarray, frame: np.ndarray, mesh: str = "first", down: np.ndarray | None = None) -> np.ndarray:
         """Winding number at points of any frames: points (P, 3) float, metres, point i against
         frame ``frame[i]`` (P,) int of the mesh; ``mesh``: "first" (the grid's vertex set),
-        "second" (its second one) or "either" (the larger of the two numbers: inside either one).
-        returns (P,) int32."""
+        "second" (its second one) or "either" (the larger of the two numbers: inside either one);
+        ``down`` (P,) bool: the points whose ray runs along -y instead of +y (the same numbers;
+        a ray that leaves the body at once, ``ray_down``, meets fewer faces). returns (P,) int32."""
         if mesh not in ("first", "second", "either") or (mesh != "first" and len(self.coords) < 2):
             raise ValueError(f"mesh {mesh!r} of a grid of {len(self.coords)} vertex set(s)")
         points = np.asarray(points)
@@ -221,16 +228,31 @@ class WindingGrid:
             points = points.astype(np.float64)
         first, second = (self.coords[-1], self.coords[0]) if mesh == "second" else (self.coords[0], self.coords[-1])
         points = np.ascontiguousarray(points)
+        down = np.zeros(len(points), bool) if down is None else np.ascontiguousarray(down, bool)
+        if down.shape != frame.shape:
+            raise InputShapeError("down", "(P,)", down.shape)
         w = kernels.count_crossings(
-            points, frame, *first, *second, self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, self.V,
+            points, frame, down, *first, *second, self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, self.V,
             1.0 / self.h, self.lo, int(self.ncell[0]), int(self.ncell[1]), self.region, self.bounded, self.start,
             self.cell_face, self.pair_box, mesh == "either")
         outside = np.flatnonzero(w == kernels.UNKNOWN)
         if len(outside):  # beyond the region: the whole mesh's grid
             if self._whole is None:
                 self._whole = WindingGrid(self._sets[0], self.faces, second=self._sets[1])
-            w[outside] = self._whole.count_at(points[outside], frame[outside], mesh)
+            w[outside] = self._whole.count_at(points[outside], frame[outside], mesh, down[outside])
         return w
+
+
+def ray_down(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which points' rays should run along -y (``WindingGrid.count``'s ``down``): those whose
+    area-weighted vertex normal points down y, so that the ray leaves a garment lying on the skin
+    at once (on the T-shirt the faces a point's ray must be tested against fall from ~3.8 to
+    ~1.8). points (B, N, 3) float, metres, of a mesh with outward faces (F, 3) -> (B, N) bool."""
+    points = np.ascontiguousarray(_frames("points", points))
+    faces = _checked_topology(faces, points.shape[1])[0]
+    n = np.empty(points.shape, np.float64)
+    mesh_kernels.normals_at(points, faces, np.arange(len(faces)), np.arange(points.shape[1]), n)
+    return n[..., 1] < 0.0
 
 
 def winding_numbers(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -89,7 +89,7 @@ def count_pairs(u, v, u2, v2, faces, B, V, inv_h, lo, ni, nj, region, start):
 def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, region, start, fill, cell_face, pair_box):
     """Second pass: the faces of cell c (face ids f of frame b, in increasing order) in
     cell_face[start[c]:start[c + 1]] (int32), each with its face's box (u min, u max, v min,
-    v max, y max; over both vertex sets, as ``count_pairs``) in pair_box (float32, widened by BOX_SLACK so that the pre-test of
+    v max, y max, y min; over both vertex sets, as ``count_pairs``) in pair_box (float32, widened by BOX_SLACK so that the pre-test of
     ``count_crossings`` stays conservative after the rounding), so that a point's pre-test
     reads memory in order. fill: (B*ni*nj,) int64 scratch."""
     F = faces.shape[0]
@@ -106,25 +106,29 @@ def fill_pairs(u, v, y, u2, v2, y2, faces, B, V, inv_h, lo, ni, nj, region, star
             umin, umax = min(u[a], u[c], u[d], u2[a], u2[c], u2[d]), max(u[a], u[c], u[d], u2[a], u2[c], u2[d])
             vmin, vmax = min(v[a], v[c], v[d], v2[a], v2[c], v2[d]), max(v[a], v[c], v[d], v2[a], v2[c], v2[d])
             ymax = max(y[a], y[c], y[d], y2[a], y2[c], y2[d])
+            ymin = min(y[a], y[c], y[d], y2[a], y2[c], y2[d])
             box0 = np.float32(umin - BOX_SLACK * (1.0 + abs(umin)))
             box1 = np.float32(umax + BOX_SLACK * (1.0 + abs(umax)))
             box2 = np.float32(vmin - BOX_SLACK * (1.0 + abs(vmin)))
             box3 = np.float32(vmax + BOX_SLACK * (1.0 + abs(vmax)))
             box4 = np.float32(ymax + BOX_SLACK * (1.0 + abs(ymax)))
+            box5 = np.float32(ymin - BOX_SLACK * (1.0 + abs(ymin)))
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
                     cell = b * cells + i * nj + j
                     s = fill[cell]
                     cell_face[s] = f
                     pair_box[s, 0], pair_box[s, 1], pair_box[s, 2], pair_box[s, 3], pair_box[s, 4] = box0, box1, box2, box3, box4
+                    pair_box[s, 5] = box5
                     fill[cell] = s + 1
 
 
 @numba.njit(inline="always", **_JIT)
-def _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip):
-    """The signed crossing (-1, 0 or +1) of the ray from (pu, pyy, pv) with face f of the frame
-    at vertex offset ``base``: inside the face's projection by its canonical edge functions and
-    the face above the point (module doc)."""
+def _crossing(pu, pv, pyy, up, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip):
+    """The signed crossing (-1, 0 or +1) of the ray from (pu, pyy, pv) along +y (``up``) or -y with
+    face f of the frame at vertex offset ``base``: inside the face's projection by its canonical
+    edge functions and the face above (below) the point (module doc; the -y ray is the mirror
+    image: the face's side and the crossing's sign both flip)."""
     a, q, r = base + faces[f, 0], base + faces[f, 1], base + faces[f, 2]
     u0, v0 = u[a], v[a]
     A2 = (u[q] - u0) * (v[r] - v0) - (v[q] - v0) * (u[r] - u0)
@@ -141,17 +145,22 @@ def _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, 
             return 0
         Et = -E if flip[f, k] else E
         depth = depth + Et * (y[base + opposite[f, k]] - pyy)
-    if (depth > 0.0) == ccw:
-        return -1 if ccw else 1
+    if up:
+        if (depth > 0.0) == ccw:
+            return -1 if ccw else 1
+    elif (depth < 0.0) == ccw:
+        return 1 if ccw else -1
     return 0
 
 
 @numba.njit(**_JIT)
-def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip, V, inv_h, lo, ni, nj, region,
+def count_crossings(points, frame, down, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip, V, inv_h, lo, ni, nj, region,
                     bounded, start, cell_face, pair_box, either):
     """Winding number at each point: the signed crossings of its ray with the faces of its cell.
 
     points     : (P, 3) float32 or float64, metres; frame (P,) int64: the frame each point is tested in
+    down       : (P,) bool, the point's ray runs along -y (else +y): any ray gives the winding number
+                 of a closed mesh; one leaving the body at once meets fewer faces
     u, v, y    : (B*V,) float64 vertex coordinates (x, z, y), one vertex set the grid was binned
                  with; faces (F, 3) int64
     u2, v2, y2 : the grid's other vertex set, read only if ``either``: then the larger of the two
@@ -179,14 +188,17 @@ def count_crossings(points, frame, u, v, y, u2, v2, y2, faces, edge_lo, edge_hi,
         c = b * cells + i * nj + j
         total, total2 = 0, 0
         base = b * V
+        up = not down[p]
         for s in range(start[c], start[c + 1]):
-            # cheap pre-test: the projected box holds p and the face reaches above p
-            if pu < pair_box[s, 0] or pu > pair_box[s, 1] or pv < pair_box[s, 2] or pv > pair_box[s, 3] or pair_box[s, 4] <= pyy:
+            # cheap pre-test: the projected box holds p and the face reaches above (below) p
+            if pu < pair_box[s, 0] or pu > pair_box[s, 1] or pv < pair_box[s, 2] or pv > pair_box[s, 3]:
+                continue
+            if (pair_box[s, 4] <= pyy) if up else (pair_box[s, 5] >= pyy):
                 continue
             f = cell_face[s]
-            total += _crossing(pu, pv, pyy, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip)
+            total += _crossing(pu, pv, pyy, up, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip)
             if either:
-                total2 += _crossing(pu, pv, pyy, f, base, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip)
+                total2 += _crossing(pu, pv, pyy, up, f, base, u2, v2, y2, faces, edge_lo, edge_hi, opposite, flip)
         w[p] = max(total, total2) if either else total
     return w
 

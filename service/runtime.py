@@ -49,7 +49,7 @@ MODEL_VERSIONS = {
     "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.collisions 'check' and 'exact')
     "guard_plain": "plane-push-v3",  # options.collisions 'push': the push alone (v3: farther limbs)
-    "repair": "winding-repair-v3",  # options.collisions 'exact', the default (inference/repair.py); v2: the outermost layer 2 mm off the skin; v3: inner layers kept under the outer ones
+    "repair": "winding-repair-v4",  # options.collisions 'exact', the default (inference/repair.py); v2: the outermost layer 2 mm off the skin; v3: inner layers kept under the outer ones; v4: the targets' skin normals in float64 (moves within 0.5 um of v3)
     "layers": "anchor-sink-v1",  # outfits of several garments, collisions not 'off' (inference/layers.py)
     "arms": "shoulder-lift-v2",  # options.lift_arms, the default (inference/motion/self_contact.py); v2: 10 mm clearance
 }

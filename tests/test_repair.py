@@ -5,7 +5,7 @@ import trimesh
 
 from inference.errors import InputShapeError
 from inference.repair import exact_repair
-from inference.winding import WindingGrid, inflated, winding_numbers
+from inference.winding import WindingGrid, inflated, ray_down, winding_numbers
 
 
 def _two_spheres():
@@ -136,6 +136,27 @@ def test_a_grid_over_a_region_bins_fewer_faces_and_answers_every_point():
     assert grid._whole is not None
     with pytest.raises(InputShapeError):
         WindingGrid(big, f, region=region[:1])
+
+
+def test_rays_down_y_count_the_same_winding_numbers():
+    """A closed mesh's winding number is the signed crossings of any ray: -y rays (per point)
+    give the +y rays' numbers, in the overlap of the two parts too; ``ray_down`` picks -y where
+    a vertex's outward normal points down y."""
+    v, f = _two_spheres()
+    frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)
+    grid = WindingGrid(inflated(frames, f, 0.05), f, second=frames)
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-2.2, 2.2, (2, 3000, 3)).astype(np.float32)
+    q[1] += [0.0, 0.0, 3.0]
+    down = rng.random(q.shape[:2]) < 0.5
+    for mesh in ("first", "second", "either"):
+        np.testing.assert_array_equal(grid.count(q, mesh, down), grid.count(q, mesh))
+        np.testing.assert_array_equal(grid.count(q, mesh, np.ones_like(down)), grid.count(q, mesh))
+    assert (grid.count(q) == 2).sum() > 5  # the lens is sampled
+    picked = ray_down(frames, f)
+    np.testing.assert_array_equal(picked[0, : len(v) // 2], v[: len(v) // 2, 1] < -1e-6)  # a sphere's normals are radial
+    with pytest.raises(InputShapeError):
+        grid.count(q, "first", down[:1])
 
 
 def test_one_grid_answers_for_the_body_its_inflated_copy_or_either():

@@ -229,7 +229,7 @@ def test_exact_repair_leaves_no_vertex_inside_the_body_by_default(client):
     retarget = {"fit": "retarget", "dynamics": "none"}
     repaired, inside, versions = run(retarget)
     plain, inside_off, versions_off = run({**retarget, "guard_exact": False})
-    assert versions["repair"] == "winding-repair-v3" and versions_off["repair"] == "none"
+    assert versions["repair"] == "winding-repair-v4" and versions_off["repair"] == "none"
     assert inside_off.sum() > 0  # the guard alone leaves a few vertices in the body's folds
     assert inside.sum() == 0
     assert run({})[1].sum() == 0  # the garment's default method too
