@@ -89,6 +89,19 @@ def push_out(diffused: DiffusedBody, X: np.ndarray, margin_m: float, steps: int 
     return X, int(moved)
 
 
+def push_fields(diffused: DiffusedBody, X: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``push_out`` and the fields eq. 6.7 reads (``DiffusedBody.fields``) in one gather: the SDF
+    is the fields' last channel (the same interpolation, bitwise), so only the points pushed are
+    read again. X (..., 3) metres -> (X' float32 (..., 3), fields (..., K + 1))."""
+    X = np.array(X, np.float32, copy=True)
+    fields = diffused.fields(X)
+    low = fields[..., -1] < margin_m - PUSH_TOLERANCE_M
+    if low.any():
+        X[low] = push_out(diffused, X[low], margin_m)[0]
+        fields[low] = diffused.fields(X[low])
+    return X, fields
+
+
 @dataclass
 class CanonicalGarment:
     """One garment's learned canonical model: the regressor R (phenotypes (B, 6), gamma (B, T, F),
@@ -217,11 +230,11 @@ class CanonicalModels:
         return loaded
 
     def frames(self, garment: GarmentAsset, phenotypes: np.ndarray, gamma: np.ndarray, segments: list[int],
-               h0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               h0: np.ndarray | None = None, push: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """The learned canonical frames X_t (T, V, 3) of one body over motions concatenated along
         T (``segments``: their frame counts; the GRU restarts from zeros at each, or from ``h0``
-        when there is one segment), pushed out of the canonical body to the garment's margin,
-        and the GRU state after the last frame."""
+        when there is one segment), pushed out of the canonical body to the garment's margin
+        (``push``; else as decoded, for ``push_fields``), and the GRU state after the last frame."""
         model = self.learned(garment.id)
         if int(model.meta["vertices"]) != garment.num_vertices:
             raise InputShapeError("canonical model", f"({garment.num_vertices} vertices)", (int(model.meta["vertices"]),))
@@ -233,7 +246,7 @@ class CanonicalModels:
             X, hT = model.sequence(phenotypes, gamma[:, a:b], h0)
             parts.append(X)
         X = np.concatenate(parts)
-        return push_out(self.diffused, X, margin(garment))[0], hT
+        return (push_out(self.diffused, X, margin(garment))[0] if push else X), hT
 
 
 def margin(garment: GarmentAsset) -> float:

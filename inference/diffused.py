@@ -227,6 +227,11 @@ class DiffusedBody:
         out[..., self.bone_index] = w
         return out
 
+    def fields(self, points: np.ndarray) -> np.ndarray:
+        """W~ over the kept bones (unnormalised) and the SDF at points (..., 3) -> (..., K + 1)
+        float32, one gather: what ``pose`` reads (``skin=``), its last channel ``sdf``'s value."""
+        return self._skin(np.asarray(points, np.float32))
+
     def weights(self, points: np.ndarray) -> np.ndarray:
         """W~(p) (eq. 6.4): (..., 3) -> (..., J) float32, non-negative rows summing to 1."""
         return self._full_weights(self._skin(points)[..., :-1])
@@ -270,12 +275,13 @@ class DiffusedBody:
         return X + self.shape_offsets(X, offsets)
 
     # ------------------------------------------------------------------ eq. 6.7
-    def pose(self, X: np.ndarray, offsets: BodyOffsets, transforms: np.ndarray) -> np.ndarray:
+    def pose(self, X: np.ndarray, offsets: BodyOffsets, transforms: np.ndarray, fields: np.ndarray | None = None) -> np.ndarray:
         """M_G(X, beta, theta) (eq. 6.7) with W~ and B~s at each frame's own canonical points.
 
         X          : (T, V, 3) canonical garment per frame, metres
         offsets    : ``offsets(rest_vertices)`` of the body
         transforms : (T, J, 4, 4) the body's skinning transforms per frame
+        fields     : ``fields(X)`` if already read (``inference.canonical.push_fields``)
         returns      (T, V, 3) float32 posed garment
         """
         X = np.asarray(X, np.float32)
@@ -283,7 +289,9 @@ class DiffusedBody:
             raise InputShapeError("X", "(T, V, 3)", X.shape)
         if transforms.shape != (len(X), self.bones, 4, 4):
             raise InputShapeError("transforms", f"({len(X)}, {self.bones}, 4, 4)", transforms.shape)
-        w = np.maximum(self._skin(X)[..., :-1], 0.0)  # (T, V, K) over the kept bones
+        if fields is not None and fields.shape != X.shape[:2] + (len(self.bone_index) + 1,):
+            raise InputShapeError("fields", f"{X.shape[:2] + (len(self.bone_index) + 1,)}", fields.shape)
+        w = np.maximum((self._skin(X) if fields is None else fields)[..., :-1], 0.0)  # (T, V, K) over the kept bones
         w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
         shaped = X + self.shape_offsets(X, offsets)
         A = np.matmul(w, np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, V, 12)

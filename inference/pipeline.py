@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blend_skinning
-from inference.canonical import CanonicalModels, default_canonical
+from inference.canonical import CanonicalModels, default_canonical, margin, push_fields
 from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, resolve_methods
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
@@ -267,12 +267,13 @@ def drape(
         h0 = wrinkle_state[i] if wrinkle_state is not None else None
         if m.fit == "canonical" and m.dynamics == "learned":
             d = canonical.diffused
-            with timer("dynamics"):  # X_t = D(R(beta, gamma_1..t)), pushed out of the canonical body
-                X, h_t = canonical.frames(g, shape.phenotypes, gamma, segments, h0)
+            with timer("dynamics"):  # X_t = D(R(beta, gamma_1..t))
+                X, h_t = canonical.frames(g, shape.phenotypes, gamma, segments, h0, push=False)
                 states.append(h_t)
-            with timer("skin"):  # eq. 6.7 with W~ and B~s at every frame's own points
+            with timer("skin"):  # pushed out of the canonical body, then eq. 6.7 with W~ and B~s at every frame's own points
+                X, fields = push_fields(d, X, margin(g))
                 offsets = d.offsets(shape.rest_vertices[0])
-                frames = d.pose(X, offsets, transforms[0])
+                frames = d.pose(X, offsets, transforms[0], fields)
             with timer("strain"):  # the decoded garment's shortest edges back to 0.8 of their rest length
                 posed.append(canonical.compression_limit(g)(frames)[None])
             if len(garments) > 1:  # the guard and the layer stage plan on the sequence's mean canonical form
