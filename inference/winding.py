@@ -5,12 +5,14 @@ The posed body is a closed, outward-oriented triangle mesh that intersects itsel
 crossings and not a closest-face sign. For a closed mesh the winding number is an integer and
 equals the signed number of crossings of any ray from the point:
 
-    w(p) = sum over faces f hit by the ray p + t e_y (t > 0) of sign(n_f . e_y)
+    w(p) = sum over faces f hit by the ray p + t s e_y (t > 0, s = +1 or -1 per point) of sign(n_f . s e_y)
 
 (an outward face is left through, +1, or entered, -1). ``WindingGrid`` bins the faces of a batch
 of frames once, projected along the ray onto (x, z), into a 2-D grid; a point then tests only the
 faces of its cell, so one grid answers many point sets (a garment's vertices, then the targets of
-``inference.repair``). Point-in-projected-triangle uses edge functions evaluated from the edge's
+``inference.repair``), each point casting its ray up or down y (``ray_down``: the side its
+garment's normal faces, so the ray leaves the body at once), and a grid can bin only the faces
+over the part of the plane its points lie in (``region``). Point-in-projected-triangle uses edge functions evaluated from the edge's
 two vertices in canonical (lower index first) order, so the two faces sharing an edge compute the
 bitwise same value and a ray through the edge is counted once (ties go to the left of the
 canonical edge). Only rays through a projected vertex, or points on the surface, are ambiguous
