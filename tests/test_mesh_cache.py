@@ -1,0 +1,38 @@
+"""``inference.mesh.per_array``: values derived once per array object, never for another array."""
+import gc
+
+import numpy as np
+
+from inference.layers import anchor_normals
+from inference.mesh import per_array, vertex_normals
+
+
+def test_a_value_is_kept_per_array_object_and_not_reused_for_another():
+    calls = []
+
+    @per_array
+    def total(a, scale):
+        calls.append(1)
+        return float(np.sum(a)) * scale
+
+    a = np.arange(4.0)
+    assert total(a, 2) == 12.0 and total(a, 2) == 12.0 and len(calls) == 1
+    assert total(a, 3) == 18.0 and len(calls) == 2  # other arguments: another entry
+    b = np.arange(4.0) + 1  # equal shape, another object
+    assert total(b, 2) == 20.0 and len(calls) == 3
+    del a
+    gc.collect()
+    c = np.zeros(4)  # may take the freed array's id: the weak reference tells them apart
+    assert total(c, 2) == 0.0 and len(calls) == 4
+    assert total([1.0, 2.0], 1) == 3.0 and total([1.0, 2.0], 1) == 3.0 and len(calls) == 6  # no weak reference: no cache
+
+
+def test_compiled_anchor_normals_equal_the_numpy_vertex_normals():
+    rng = np.random.default_rng(0)
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=2)
+    v = (s.vertices[None] * rng.uniform(0.8, 1.2, (3, 1, 3))).astype(np.float32)
+    ids = rng.choice(len(s.vertices), 20, replace=False)
+    got = anchor_normals(v, s.faces.astype(np.int32), ids)
+    np.testing.assert_allclose(got, vertex_normals(v, s.faces)[:, ids], atol=1e-6)
