@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from inference.body import BodyModel
-from inference.canonical import PUSH_TOLERANCE_M, CanonicalModels, push_out
+from inference.canonical import PUSH_TOLERANCE_M, CanonicalModels, push_fields, push_out
 from inference.errors import UnknownAssetError
 from inference.garment import GarmentCatalog
 from inference.mesh import vertex_normals
@@ -38,6 +38,11 @@ def test_push_out_moves_only_points_within_the_margin_and_leaves_them_at_it(setu
     assert after.min() > 0.003 - 5e-4
     far = before >= 0.003 - PUSH_TOLERANCE_M
     np.testing.assert_array_equal(Y[far], X[far])
+    # the one-gather form the pipeline runs: the same points, and the fields eq. 6.7 reads at them
+    Z, fields = push_fields(d, X.reshape(2, -1, 3), 0.003)
+    np.testing.assert_array_equal(Z.reshape(-1, 3), Y)
+    np.testing.assert_array_equal(fields, d.fields(Y).reshape(2, -1, fields.shape[-1]))
+    np.testing.assert_array_equal(fields[..., -1].ravel(), after)
 
 
 def test_canonical_fit_keeps_the_garment_out_of_shaped_bodies_where_the_retarget_does_not(setup):
