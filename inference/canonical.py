@@ -202,7 +202,7 @@ class CanonicalModels:
         """The garment's compression limit (``inference.strain``) on its rest lengths, once per garment."""
         with self._lock:
             if garment.id not in self._limits:
-                self._limits[garment.id] = CompressionLimit.from_mesh(garment.rest_vertices, garment.edges)
+                self._limits[garment.id] = CompressionLimit.for_garment(garment)
             return self._limits[garment.id]
 
     def available(self, garment_id: str) -> bool:

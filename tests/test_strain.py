@@ -144,3 +144,20 @@ def test_a_static_canonical_garment_gets_the_limit_after_its_skinning(monkeypatc
     assert ratios(limit, raw).min() < 0.7  # there is something to limit
     assert np.percentile(ratios(limit, limited), 1) > np.percentile(ratios(limit, raw), 1) + 0.02
     assert np.linalg.norm(limited - raw, axis=-1).mean() < 1e-3
+
+
+def test_a_garment_limit_takes_its_category_ratio():
+    """The bottoms' limit is MIN_RATIO_BY_CATEGORY's (chosen on validation); the others' MIN_RATIO."""
+    from inference.garment import GarmentCatalog
+    from inference.strain import MIN_RATIO, MIN_RATIO_BY_CATEGORY
+
+    catalog = GarmentCatalog.load()
+    trousers, tshirt = CompressionLimit.for_garment(catalog.get("trousers")), CompressionLimit.for_garment(catalog.get("tshirt"))
+    assert trousers.ratio == MIN_RATIO_BY_CATEGORY["bottom"] > MIN_RATIO == tshirt.ratio
+    rest, edges = grid()
+    X = squeezed(rest, 0.5)[None]
+    for ratio in (0.8, 0.85):
+        limited = CompressionLimit.from_mesh(rest, edges, ratio)(X, iterations=200)
+        lengths = np.linalg.norm(limited[0, edges[:, 1]] - limited[0, edges[:, 0]], axis=-1)
+        rest_len = np.linalg.norm(rest[edges[:, 1]] - rest[edges[:, 0]], axis=-1)
+        assert (lengths / rest_len).min() > ratio - 0.01

@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
 
     # 5: scores against newton: validation (where choices are made) and test (reported only)
     rows = []
-    limit = CompressionLimit.from_mesh(asset.rest_vertices, asset.edges)
+    limit = CompressionLimit.for_garment(asset)
     with torch.no_grad():
         z_template = vae.encode(torch.as_tensor(asset.vertices[None].astype(np.float32)))[0]
     for split in ("validation", "test"):
