@@ -284,15 +284,15 @@ CANDIDATES = ("learned", "learned-fit", "canonical", "canonical-learned")
 BASELINES = ("retarget", "lbs")
 
 
-def select_defaults(rows: list[dict], required_cases: int | None = None) -> dict[str, dict]:
+def select_defaults(rows: list[dict], required_cases: int | None = None, evidence: str = "docs/evaluation.md") -> dict[str, dict]:
     """Per garment, the default method from validation rows (module docstring); a garment with
     fewer than ``required_cases`` judged cases keeps the baseline (nothing is chosen on part of
-    the split)."""
+    the split). ``evidence``: the report that shows the rows (the judge's ``--write``)."""
     out = {}
     for garment in sorted({r["garment"] for r in rows}):
         mine = [r for r in rows if r["garment"] == garment]
         if required_cases is not None and len(mine) < required_cases:
-            out[garment] = {"fit": "retarget", "dynamics": "none", "evidence": "docs/evaluation.md",
+            out[garment] = {"fit": "retarget", "dynamics": "none", "evidence": evidence,
                             "reason": f"baseline: only {len(mine)} of the {required_cases} validation cases have a newton reference"}
             continue
         names = [m for m in mine[0]["methods"] if all(m in r["methods"] for r in mine)]
@@ -301,7 +301,7 @@ def select_defaults(rows: list[dict], required_cases: int | None = None) -> dict
         errors = ", ".join(f"{m} {e:.2f} cm" for m, e in err.items())
         undressed = [r["case"] for r in mine if not r["reference"].get("dressed", True)]
         if undressed:
-            out[garment] = {"fit": "retarget", "dynamics": "none", "evidence": "docs/evaluation.md",
+            out[garment] = {"fit": "retarget", "dynamics": "none", "evidence": evidence,
                             "reason": f"baseline: the newton reference does not stay dressed on validation ({', '.join(undressed)}: "
                                       f"more than {MAX_SLID_PCT:g} % of its carried half slid over {100 * SLID_M:g} cm off the body), so nothing is judged closer to physics"}
             continue
@@ -321,7 +321,7 @@ def select_defaults(rows: list[dict], required_cases: int | None = None) -> dict
         else:
             out[garment] = {"fit": "retarget", "dynamics": "none",
                             "reason": f"baseline: on validation (mean over {cases}; {errors}) " + "; ".join(verdicts)}
-        out[garment]["evidence"] = "docs/evaluation.md"
+        out[garment]["evidence"] = evidence
     return out
 
 
@@ -524,7 +524,8 @@ def main(argv: list[str] | None = None) -> None:
         results[split] = rows
     defaults = None
     if "validation" in results and results["validation"]:
-        defaults = select_defaults(results["validation"], len(SPLITS["validation"]))
+        evidence = "docs/evaluation.md" if args.write is None else args.write.as_posix()
+        defaults = select_defaults(results["validation"], len(SPLITS["validation"]), evidence)
         shipped = args.write_defaults if args.write_defaults is not None and args.write_defaults.exists() else SHIPPED_DEFAULTS
         current = json.loads(shipped.read_text())["garments"] if shipped.exists() else {}
         merged = merge_hand_set(defaults, current)  # hand-set entries kept; garments not judged here keep theirs
