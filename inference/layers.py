@@ -201,8 +201,8 @@ def anchor_normals(body: np.ndarray, body_faces: np.ndarray, anchors: np.ndarray
     """Unit area-weighted normals of the posed body at the anchor vertices: (T, N, 3) float64.
 
     body : (T, Vb, 3) ; body_faces : (F, 3) ; anchors : (N,) vertex ids (only their faces are used;
-    compiled, ``inference.mesh_kernels.normals_at``: ~0.1 ms a frame where the sparse sums of
-    numpy face normals took ~1.2)
+    compiled, ``inference.mesh_kernels.normals_at``: 0.08 ms per frame of 30 where the sparse sums of
+    numpy face normals took 0.33, T-shirt under jacket)
     """
     body = np.ascontiguousarray(body)
     faces = np.ascontiguousarray(body_faces, np.int64)
