@@ -456,15 +456,19 @@ def _row_key(case: Case, garment: str, reference_dir: Path) -> str:
     import inference.canonical
     import inference.diffused
     import inference.intersections
+    import inference.mesh
+    import inference.mesh_kernels
     import inference.pipeline
     import inference.repair
+    import inference.repair_kernels
     import inference.strain
     import inference.winding
     import inference.winding_kernels
 
     h = hashlib.sha256(Path(inspect.getsourcefile(realism)).read_bytes())
     for module in (inference.pipeline, inference.repair, inference.canonical, inference.diffused, inference.strain,  # what the methods run
-                   inference.winding, inference.winding_kernels, inference.intersections):
+                   inference.winding, inference.winding_kernels, inference.intersections, inference.repair_kernels,
+                   inference.mesh, inference.mesh_kernels):
         h.update(Path(inspect.getsourcefile(module)).read_bytes())
     for fn in (judge_case, realism_failures, worse_on_realism, slid_pct, carried_vertices, mean_error_cm, _energies, _collisions):
         h.update(inspect.getsource(fn).encode())
