@@ -184,7 +184,8 @@ def test_close_drains_queued_work_then_refuses():
 
 def test_merged_pipeline_call_equals_solo_calls(runtime):
     """Concatenating motions along time and splitting the result gives each request its own
-    frames: exact without the guard; with it, equal but for a few guard-pushed vertices."""
+    frames: equal to float rounding without the guard; with it, equal but for a few guard-pushed
+    vertices."""
     reqs = [_request("walk", 0.3), _request("run", 0.5), _request("dance", 0.2)]
     for guard in (False, True):
         rs = [DrapeRequest.model_validate({**r.model_dump(), "options": {**r.options.model_dump(), "collisions": "exact" if guard else "off"}})
@@ -198,7 +199,11 @@ def test_merged_pipeline_call_equals_solo_calls(runtime):
             if guard:
                 assert np.mean(d > 1e-4) < 0.01 and d.max() < 0.03  # measured: 0.3 %, max 1.6 cm
             else:
-                assert d.max() < 1e-5
+                # the same to float rounding: the decoder runs over other batches of frames, which
+                # rounds differently on some CPUs, and a point within that rounding of the canonical
+                # push's threshold (PUSH_TOLERANCE_M, 0.1 mm) is pushed in one and not the other
+                # (measured up to 0.14 mm on an AMD EPYC); a frame of another request is cm away
+                assert d.max() < 1e-3
 
 
 def test_batch_with_a_bad_request_answers_each(runtime):
