@@ -56,7 +56,7 @@ body, ~400 points within the clearance per frame; session 31): the winding grid 
 the garments' region (REGION_M; ~0.9 ms, once per block of frames, shared by the layers, with the
 inflated copy ~0.15 ms), the count at the garment's 5,148 vertices (~1.5 ms), and for the points
 within the clearance one KD-tree of the block's nearby skin vertices, their targets and the count
-at them (~2.8 ms): ~5.3 ms in all, against ~7.1 with a grid of the whole body and a KD-tree per
+at them (~2.5 ms): ~4.9 ms in all on a quiet machine, against ~6.5 with a grid of the whole body and a KD-tree per
 frame (bench table in docs/benchmarks.md).
 
 Units: metres. Arrays: float32, batch axis first.
