@@ -229,7 +229,7 @@ class DiffusedBody:
 
     def fields(self, points: np.ndarray) -> np.ndarray:
         """W~ over the kept bones (unnormalised) and the SDF at points (..., 3) -> (..., K + 1)
-        float32, one gather: what ``pose`` reads (``skin=``), its last channel ``sdf``'s value."""
+        float32, one gather: what ``pose`` reads (its ``fields``), its last channel ``sdf``'s value."""
         return self._skin(np.asarray(points, np.float32))
 
     def weights(self, points: np.ndarray) -> np.ndarray:

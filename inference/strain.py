@@ -37,7 +37,8 @@ from inference.strain_kernels import limit_in_place
 # (+0.9 / +1.3 points with 10 iterations, +1.1 / +1.6 with 20).
 MIN_RATIO = 0.8
 ITERATIONS = 5
-# Per garment category where the validation walk chose otherwise (``CompressionLimit.for_garment``):
+# Per garment category where the validation walk chose otherwise (``CompressionLimit.for_garment``;
+# ``python tools/compression_sweep.py --garment trousers --garment suittrousers``):
 # the learned canonical trousers and suit trousers at 0.8 keep their shortest 1 % of edges at
 # the limit on the heavy body (edge p1 0.80 / 0.79), 0.05 below the retarget's (0.85 / 0.84: the
 # judge's realism tolerance), where newton's cloth keeps 0.92-0.93; at 0.85 their p1 is 0.84 /
