@@ -69,7 +69,7 @@ def main() -> None:
     rows.append(("static X: X + B~s(X, beta), one sparse product per body (W~(X) cached)", ms))
     ms, posed = best(lambda: linear_blend_skinning(shaped[None, None].repeat(T, 1), w, transforms), args.repeats)
     rows.append(("static X: skinning, every frame", ms))
-    limit = canonical.compression_limit(asset)
+    limit = canonical.strain_limit(asset)
     ms, posed = best(lambda: limit(posed[0])[None], args.repeats)
     rows.append(("static X: compression limit (inference.strain, 5 Jacobi passes, compiled)", ms))
     ms, _ = best(lambda: exact_repair(posed, body_frames, body.faces, margin_m), args.repeats)

@@ -43,7 +43,7 @@ from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.learned import MODELS_DIR, MissingModelError, ort_session
-from inference.strain import CompressionLimit
+from inference.strain import StrainLimit
 
 MODEL_FILE = "canonical.json"  # in assets/models/<garment>/, next to the ONNX files it names
 
@@ -161,7 +161,7 @@ class CanonicalModels:
         self._diffused: DiffusedBody | None = None
         self._templates: dict[str, tuple[np.ndarray, np.ndarray, scipy.sparse.csr_matrix]] = {}
         self._learned: dict[str, CanonicalGarment] = {}
-        self._limits: dict[str, CompressionLimit] = {}
+        self._limits: dict[str, StrainLimit] = {}
         self._lock = threading.Lock()
 
     @property
@@ -198,11 +198,11 @@ class CanonicalModels:
             raise InputShapeError("rest_vertices", str(d.neutral_vertices.shape), v.shape)
         return (X + S @ (v - d.neutral_vertices)).astype(np.float32), W
 
-    def compression_limit(self, garment: GarmentAsset) -> CompressionLimit:
+    def strain_limit(self, garment: GarmentAsset) -> StrainLimit:
         """The garment's compression limit (``inference.strain``) on its rest lengths, once per garment."""
         with self._lock:
             if garment.id not in self._limits:
-                self._limits[garment.id] = CompressionLimit.for_garment(garment)
+                self._limits[garment.id] = StrainLimit.for_garment(garment)
             return self._limits[garment.id]
 
     def available(self, garment_id: str) -> bool:

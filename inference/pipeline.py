@@ -275,7 +275,7 @@ def drape(
                 offsets = d.offsets(shape.rest_vertices[0])
                 frames = d.pose(X, offsets, transforms[0], fields)
             with timer("strain"):  # the decoded garment's shortest edges back to 0.8 of their rest length
-                posed.append(canonical.compression_limit(g)(frames)[None])
+                posed.append(canonical.strain_limit(g)(frames)[None])
             if len(garments) > 1:  # the guard and the layer stage plan on the sequence's mean canonical form
                 with timer("fit"):
                     Xm = X.mean(0)
@@ -295,7 +295,7 @@ def drape(
             skinned = linear_blend_skinning(unposed_t, w, garment_transforms)
         if m.fit == "canonical":
             with timer("strain"):  # eq. 6.7's squeeze under the arms: shortest edges back to 0.8 of their rest length
-                skinned = canonical.compression_limit(g)(skinned[0])[None]
+                skinned = canonical.strain_limit(g)(skinned[0])[None]
         posed.append(skinned)
         unposed_fits.append(unposed)
         weights.append(w)

@@ -1,8 +1,9 @@
-"""Compiled Jacobi iteration of the compression limit (``inference.strain``; numba, one thread).
+"""Compiled Jacobi iteration of the strain limit (``inference.strain``; numba, one thread).
 
 The maths is ``inference.strain``'s module doc. Per frame and iteration, one pass over the edges
-sums each active edge's push into its two ends (float64 sums), one pass over the vertices moves
-each by the mean of its pushes; a frame stops early once no edge is below the ratio.
+sums each active edge's correction into its two ends (float64 sums), one pass over the vertices
+moves each by the mean of its corrections; a frame stops early once every edge is within
+[min_ratio, max_ratio] of its rest length.
 
 Units: metres. Arrays: float32 vertices and rest lengths, int64 edges.
 """
@@ -15,8 +16,9 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 
 
 @numba.njit(**_JIT)
-def limit_in_place(X, edges, rest, ratio, iterations):
-    """X (B, V, 3) float32, moved in place; edges (E, 2) int64; rest (E,) float32."""
+def limit_in_place(X, edges, rest, min_ratio, max_ratio, iterations):
+    """X (B, V, 3) float32, moved in place; edges (E, 2) int64; rest (E,) float32; a ratio of
+    0 (min) or inf (max) leaves that side free."""
     B, V = X.shape[0], X.shape[1]
     E = edges.shape[0]
     move = np.zeros((V, 3), np.float64)
@@ -32,8 +34,10 @@ def limit_in_place(X, edges, rest, ratio, iterations):
                 d1 = np.float64(X[b, j, 1]) - X[b, i, 1]
                 d2 = np.float64(X[b, j, 2]) - X[b, i, 2]
                 length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-                deficit = ratio * rest[e] - length
-                if deficit > 0.0 and length > 1e-9:
+                deficit = min_ratio * rest[e] - length
+                if deficit <= 0.0:
+                    deficit = min(max_ratio * rest[e] - length, 0.0)  # negative: an edge pulled in
+                if deficit != 0.0 and length > 1e-9:
                     s = 0.5 * deficit / length
                     move[j, 0] += s * d0
                     move[j, 1] += s * d1

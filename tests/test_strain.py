@@ -1,10 +1,10 @@
-"""The compression limit (inference/strain.py) and its place after the learned canonical model."""
+"""The strain limit (inference/strain.py) and its place after the learned canonical model."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from inference.strain import CompressionLimit
+from inference.strain import StrainLimit
 
 
 def grid(n: int = 12, h: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -18,7 +18,7 @@ def grid(n: int = 12, h: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     return verts, edges
 
 
-def ratios(limit: CompressionLimit, X: np.ndarray) -> np.ndarray:
+def ratios(limit: StrainLimit, X: np.ndarray) -> np.ndarray:
     return np.linalg.norm(X[:, limit.edges[:, 1]] - X[:, limit.edges[:, 0]], axis=-1) / limit.rest
 
 
@@ -34,10 +34,10 @@ def squeezed(rest: np.ndarray, factor: float) -> np.ndarray:
 
 def test_compressed_edges_are_pushed_back_towards_the_ratio_and_nothing_else_moves():
     rest, edges = grid()
-    limit = CompressionLimit.from_mesh(rest, edges)
+    limit = StrainLimit.from_mesh(rest, edges)
     X = np.stack([squeezed(rest, 0.5), squeezed(rest, 0.7), rest + np.float32(0.01)])  # the last frame: moved, not compressed
     before = ratios(limit, X)
-    out = limit(X, ratio=0.8, iterations=5)
+    out = limit(X, min_ratio=0.8, iterations=5)
     after = ratios(limit, out)
     assert out.dtype == np.float32 and out.shape == X.shape and np.isfinite(out).all()
     assert after[:2].min() > before[:2].min() + 0.1  # the squeezed frames' shortest edges lengthen
@@ -47,7 +47,7 @@ def test_compressed_edges_are_pushed_back_towards_the_ratio_and_nothing_else_mov
         np.testing.assert_allclose(limit(X, 0.8, iterations), dense_jacobi(limit, X, 0.8, iterations), atol=2e-6)
 
 
-def dense_jacobi(limit: CompressionLimit, X: np.ndarray, ratio: float, iterations: int) -> np.ndarray:
+def dense_jacobi(limit: StrainLimit, X: np.ndarray, ratio: float, iterations: int, max_ratio: float = np.inf) -> np.ndarray:
     """The module docstring's iteration, every edge of every frame each time, one frame at a time."""
     out = np.array(X, np.float64)
     i, j = limit.edges[:, 0], limit.edges[:, 1]
@@ -55,8 +55,9 @@ def dense_jacobi(limit: CompressionLimit, X: np.ndarray, ratio: float, iteration
         for _ in range(iterations):
             d = Y[j] - Y[i]
             length = np.linalg.norm(d, axis=-1)
-            deficit = ratio * limit.rest - length
-            on = (deficit > 0) & (length > 1e-9)
+            deficit = np.where(length < ratio * limit.rest, ratio * limit.rest - length,
+                               np.minimum(max_ratio * limit.rest - length, 0.0))
+            on = (deficit != 0) & (length > 1e-9)
             c = d * np.where(on, 0.5 * deficit / np.maximum(length, 1e-9), 0.0)[:, None]
             move, count = np.zeros_like(Y), np.zeros(len(Y))
             np.add.at(move, j, c)
@@ -67,16 +68,34 @@ def dense_jacobi(limit: CompressionLimit, X: np.ndarray, ratio: float, iteration
     return out
 
 
+def stretched(rest: np.ndarray, factor: float) -> np.ndarray:
+    """The grid with its middle third stretched along x by ``factor``."""
+    return squeezed(rest, factor)
+
+
+def test_stretched_edges_are_pulled_back_towards_the_max_ratio():
+    rest, edges = grid()
+    limit = StrainLimit.from_mesh(rest, edges, max_ratio=1.5)
+    X = np.stack([stretched(rest, 2.5), stretched(rest, 1.2)])  # the second: within the limit
+    out = limit(X, iterations=5)
+    assert ratios(limit, out)[0].max() < ratios(limit, X)[0].max() - 0.2
+    np.testing.assert_array_equal(out[1], X[1])
+    for iterations in (1, 5, 40):
+        np.testing.assert_allclose(limit(X, 0.8, iterations), dense_jacobi(limit, X, 0.8, iterations, 1.5), atol=2e-6)
+    converged = limit(X, iterations=400)
+    assert ratios(limit, converged)[0].max() < 1.5 + 0.01
+
+
 def test_the_limit_never_moves_a_mesh_whose_edges_are_all_long_enough():
     rest, edges = grid()
-    limit = CompressionLimit.from_mesh(rest, edges)
+    limit = StrainLimit.from_mesh(rest, edges)
     stretched = (rest * np.float32(1.3))[None]
     np.testing.assert_array_equal(limit(stretched), stretched)
 
 
 def test_frames_are_limited_independently_of_the_batch_they_come_in():
     rest, edges = grid()
-    limit = CompressionLimit.from_mesh(rest, edges)
+    limit = StrainLimit.from_mesh(rest, edges)
     X = np.stack([squeezed(rest, 0.5), squeezed(rest, 0.9), squeezed(rest, 0.6)])
     together = limit(X)
     for b in range(len(X)):
@@ -118,7 +137,7 @@ def test_the_shipped_learned_canonical_tshirt_keeps_its_short_edges(tmp_path):
     _, T = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
     d = canonical.diffused
     raw = d.pose(X, d.offsets(shape.rest_vertices[0]), T[0])
-    limit = canonical.compression_limit(asset)
+    limit = canonical.strain_limit(asset)
     p1_raw, p1_limited = np.percentile(ratios(limit, raw), 1), np.percentile(ratios(limit, limited), 1)
     assert p1_limited > p1_raw + 0.03, (p1_raw, p1_limited)
     assert np.linalg.norm(limited - raw, axis=-1).mean() < 1e-3
@@ -136,9 +155,9 @@ def test_a_static_canonical_garment_gets_the_limit_after_its_skinning(monkeypatc
     options = DrapeOptions(fit="canonical", dynamics="none", lift_arms=False, collisions="off")
     r = drape(body, shape, motion, [asset], options, canonical=canonical)
     assert "strain" in r.timings_ms
-    limit = canonical.compression_limit(asset)
+    limit = canonical.strain_limit(asset)
     # the same drape with the limit switched off
-    monkeypatch.setattr(CanonicalModels, "compression_limit", lambda self, g: (lambda X: X))
+    monkeypatch.setattr(CanonicalModels, "strain_limit", lambda self, g: (lambda X: X))
     raw = drape(body, shape, motion, [asset], options, canonical=canonical).garments[0].vertices
     limited = r.garments[0].vertices
     assert ratios(limit, raw).min() < 0.7  # there is something to limit
@@ -147,17 +166,20 @@ def test_a_static_canonical_garment_gets_the_limit_after_its_skinning(monkeypatc
 
 
 def test_a_garment_limit_takes_its_category_ratio():
-    """The bottoms' limit is MIN_RATIO_BY_CATEGORY's (chosen on validation); the others' MIN_RATIO."""
+    """The bottoms' limit is MIN_RATIO_BY_CATEGORY's (chosen on validation), the dress's stretch
+    limit MAX_RATIO_BY_CATEGORY's; the others' MIN_RATIO and no stretch limit."""
     from inference.garment import GarmentCatalog
-    from inference.strain import MIN_RATIO, MIN_RATIO_BY_CATEGORY
+    from inference.strain import MAX_RATIO_BY_CATEGORY, MIN_RATIO, MIN_RATIO_BY_CATEGORY
 
     catalog = GarmentCatalog.load()
-    trousers, tshirt = CompressionLimit.for_garment(catalog.get("trousers")), CompressionLimit.for_garment(catalog.get("tshirt"))
-    assert trousers.ratio == MIN_RATIO_BY_CATEGORY["bottom"] > MIN_RATIO == tshirt.ratio
+    trousers, tshirt = StrainLimit.for_garment(catalog.get("trousers")), StrainLimit.for_garment(catalog.get("tshirt"))
+    dress = StrainLimit.for_garment(catalog.get("dress"))
+    assert trousers.min_ratio == MIN_RATIO_BY_CATEGORY["bottom"] > MIN_RATIO == tshirt.min_ratio
+    assert dress.max_ratio == MAX_RATIO_BY_CATEGORY["dress"] < np.inf == tshirt.max_ratio == trousers.max_ratio
     rest, edges = grid()
     X = squeezed(rest, 0.5)[None]
     for ratio in (0.8, 0.85):
-        limited = CompressionLimit.from_mesh(rest, edges, ratio)(X, iterations=200)
+        limited = StrainLimit.from_mesh(rest, edges, ratio)(X, iterations=200)
         lengths = np.linalg.norm(limited[0, edges[:, 1]] - limited[0, edges[:, 0]], axis=-1)
         rest_len = np.linalg.norm(rest[edges[:, 1]] - rest[edges[:, 0]], axis=-1)
         assert (lengths / rest_len).min() > ratio - 0.01

@@ -11,6 +11,11 @@ the ch. 4 wrinkle model's (``training.models.WrinkleGRU``): GRU layers over [nor
 phenotypes, normalised gamma], a linear head to the latent; a whole sequence in one call with an
 initial state in and the final state out.
 
+With ``RegressorConfig.posed_weight`` = w > 0 the loss is L_R + w E_col, E_col the posed-space
+collision energy (``training.posed_collision``: SNUG's hinge against the simulation's own posed
+body) of a few decoded and posed frames per window, the decoder frozen: the regressor picks,
+among the latents near its target, those whose posed garment stays out of the body.
+
 The posed garment of frame t is then eq. 6.7: M_G(D(z_t), beta, theta_t) with the diffused
 body's W~ and B~s at the decoded canonical points (``training.projection.CanonicalBody``).
 
@@ -42,6 +47,11 @@ class RegressorConfig:
     window: int = 40  # frames per training window (from the first frame)
     batch: int = 8
     seed: int = 0
+    # the posed-space collision term (``training.posed_collision``): weight per metre of mean
+    # depth below eps (0: off), the frames of each window it is evaluated on per step, eps
+    posed_weight: float = 0.0
+    posed_frames: int = 4
+    posed_eps_m: float = 0.003
 
 
 class CanonicalRegressor(nn.Module):
@@ -74,10 +84,24 @@ def regressor_loss(z: torch.Tensor, target: torch.Tensor, config: RegressorConfi
     return pos + config.rho_vel * vel + config.rho_acc * acc
 
 
-def train_regressor(sequences: list[dict], latent: int, config: RegressorConfig = RegressorConfig()) -> tuple[CanonicalRegressor, dict]:
+def train_regressor(sequences: list[dict], latent: int, config: RegressorConfig = RegressorConfig(),
+                    decoder: nn.Module | None = None) -> tuple[CanonicalRegressor, dict]:
     """sequences: dicts with ``phenotypes`` (6,), ``gamma`` (T, F), ``z`` (T, latent), all
     starting at the simulation's first frame (the GRU starts from h0 = 0 there, as at runtime).
-    Windows of ``config.window`` frames always start at a sequence's first frame."""
+    Windows of ``config.window`` frames always start at a sequence's first frame.
+
+    With ``config.posed_weight`` > 0 the loss adds that weight times the posed-space collision
+    energy (``training.posed_collision``) of ``config.posed_frames`` random frames per window,
+    decoded by ``decoder`` (frozen) and posed on the sequence's ``posed``
+    (``training.posed_collision.PosedFrames``)."""
+    from training.posed_collision import collision_energy, pose_frames, posed_distance
+
+    posed_on = config.posed_weight > 0
+    if posed_on:
+        if decoder is None or any("posed" not in s for s in sequences):
+            raise ValueError("the posed collision term needs the decoder and every sequence's posed frames")
+        for p in decoder.parameters():
+            p.requires_grad_(False)
     torch.manual_seed(config.seed)
     rng = np.random.default_rng(config.seed)
     gammas = np.concatenate([s["gamma"] for s in sequences])
@@ -93,11 +117,22 @@ def train_regressor(sequences: list[dict], latent: int, config: RegressorConfig 
         zt = torch.as_tensor(np.stack([sequences[i]["z"][:T] for i in idx]), dtype=torch.float32)
         z, _ = model(ph, g, model.initial_state(len(idx)))
         loss = regressor_loss(z, zt, config)
+        record = {"step": step, "regressor": float(loss.detach())}  # eq. 6.18 alone
+        if posed_on:
+            energy = 0.0
+            for b, i in enumerate(idx):
+                frames = np.sort(rng.choice(T, min(config.posed_frames, T), replace=False))
+                pf = sequences[i]["posed"]
+                x = pose_frames(pf.body, decoder(z[b, frames]), pf.transforms[frames])
+                energy = energy + collision_energy(posed_distance(x, pf, frames), config.posed_eps_m) / len(idx)
+            loss = loss + config.posed_weight * energy
+            record["posed_collision_m"] = float(energy.detach())
+        record["loss"] = float(loss.detach())
         opt.zero_grad()
         loss.backward()
         opt.step()
         if step % 250 == 0 or step == config.steps - 1:
-            history.append({"step": step, "loss": float(loss.detach())})
+            history.append(record)
     return model.eval(), {"config": asdict(config), "train_wall_s": round(time.perf_counter() - t0, 1), "history": history,
                           "sequences": len(sequences)}
 

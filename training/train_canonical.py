@@ -34,16 +34,17 @@ import numpy as np
 import torch
 
 from inference.body import BodyModel
-from inference.canonical import MODEL_FILE
+from inference.canonical import MODEL_FILE, margin, push_out
 from inference.diffused import DEFAULT_PATH, DiffusedBody
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
 from inference.motion.descriptor import motion_descriptor
-from inference.strain import CompressionLimit
+from inference.strain import StrainLimit
 from training.canonical_regressor import RegressorConfig, export_regressor, train_regressor
-from training.canonical_vae import VAEConfig, export_decoder, load_canonical, metadata_record, train_vae
-from training.datasets import REPO_ROOT, TRAIN_CLIPS
+from training.canonical_vae import GarmentVAE, VAEConfig, export_decoder, load_canonical, metadata_record, train_vae
+from training.datasets import REPO_ROOT, TRAIN_CLIPS, harmonic_basis
 from training.physics import ClothGeometry
+from training.posed_collision import PosedFrames
 from training.projection import CanonicalBody, Projector, ProjectionSettings, reference_transforms, summarise
 from training.protocol import BODIES, SPLITS, Case, case_motion
 from training.reference import REFERENCE_DIR, ReferenceSettings, reference_path, simulate_case
@@ -98,6 +99,20 @@ def install(out: Path, target: Path) -> None:
     for name in (MODEL_FILE, meta["regressor"]["file"], meta["decoder"]["file"]):
         shutil.copy2(out / name, target / name)
     log.info("installed %s into %s", meta["garment"], target)
+
+
+def reuse_vae(src: Path, asset, out: Path) -> tuple[GarmentVAE, dict]:
+    """The VAE of a trained model directory (``vae.pt``; its decoder's record from
+    ``canonical.json``), its decoder ONNX copied into ``out``."""
+    import shutil
+
+    old = json.loads((src / MODEL_FILE).read_text())
+    config = VAEConfig(**old["training"]["vae"]["config"])
+    vae = GarmentVAE(asset.vertices, harmonic_basis(asset.num_vertices, asset.edges, config.basis), config)
+    vae.load_state_dict(torch.load(src / "vae.pt"))
+    if src.resolve() != out.resolve():
+        shutil.copy2(src / old["decoder"]["file"], out / old["decoder"]["file"])
+    return vae.eval(), {**old["training"]["vae"], "export": old["decoder"], "reused_from": str(src)}
 
 
 def case_inputs(body: BodyModel, case: Case) -> dict:
@@ -160,6 +175,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--vae-steps", type=int, nargs=2, default=None)
     p.add_argument("--regressor-steps", type=int, default=RegressorConfig.steps)
     p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
+    p.add_argument("--posed-weight", type=float, default=RegressorConfig.posed_weight,
+                   help="weight of the regressor's posed-space collision term (training.posed_collision; 0: off)")
+    p.add_argument("--reuse-vae", type=Path, default=None, metavar="DIR",
+                   help="a trained model directory (vae.pt, canonical.json, its decoder): keep its VAE, train the regressor only")
+    p.add_argument("--tag", default="", help="suffix of the output directory build/canonical_model/<garment><tag>")
     p.add_argument("--install", action="store_true", help="copy the runtime's files into assets/models/<garment>/")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -174,9 +194,10 @@ def main(argv: list[str] | None = None) -> None:
 
     # 1-2: simulations and their projections
     train_cases = [Case(c, b, args.start, args.frames) for c, b in pairs]
-    sequences, canonical_paths = [], []
+    sequences, canonical_paths, train_refs = [], [], []
     for case in train_cases:
         ref = simulate_case(args.garment, case, settings, TRAIN_REFERENCE_DIR, body, catalog)
+        train_refs.append(ref)
         canonical_paths.append(project(ref, CANONICAL_DIR / "train" / ref.name, body, catalog, diffused))
         sequences.append(case_inputs(body, case))
     validation = []
@@ -188,27 +209,35 @@ def main(argv: list[str] | None = None) -> None:
     t_data = time.perf_counter() - t0
 
     # 3: VAE
-    vae_config = VAEConfig() if args.vae_steps is None else VAEConfig(steps_reconstruction=args.vae_steps[0], steps_collision=args.vae_steps[1])
-    train_X = load_canonical(canonical_paths)
-    vae, vae_record = train_vae(np.concatenate([train_X, asset.vertices[None].astype(np.float32)]), asset.vertices, asset.faces, asset.edges,
-                                diffused, vae_config, load_canonical([v[2] for v in validation]), collision=not args.no_collision)
-    out = OUT_DIR / (args.garment + ("_nocol" if args.no_collision else ""))
+    out = OUT_DIR / (args.garment + ("_nocol" if args.no_collision else "") + args.tag)
     out.mkdir(parents=True, exist_ok=True)
-    torch.save(vae.state_dict(), out / "vae.pt")
-    vae_record["export"] = export_decoder(vae, out / "canonical_decoder.onnx", metadata_record(vae_record))
+    if args.reuse_vae is not None:
+        vae, vae_record = reuse_vae(args.reuse_vae, asset, out)
+    else:
+        vae_config = VAEConfig() if args.vae_steps is None else VAEConfig(steps_reconstruction=args.vae_steps[0], steps_collision=args.vae_steps[1])
+        train_X = load_canonical(canonical_paths)
+        vae, vae_record = train_vae(np.concatenate([train_X, asset.vertices[None].astype(np.float32)]), asset.vertices, asset.faces, asset.edges,
+                                    diffused, vae_config, load_canonical([v[2] for v in validation]), collision=not args.no_collision)
+        torch.save(vae.state_dict(), out / "vae.pt")
+        vae_record["export"] = export_decoder(vae, out / "canonical_decoder.onnx", metadata_record(vae_record))
 
     # 4: regressor on the VAE's encodings of the training frames
     with torch.no_grad():
         for s, path in zip(sequences, canonical_paths):
             s["z"] = vae.encode(torch.as_tensor(load_canonical([path])))[0].numpy()
-    reg, reg_record = train_regressor(sequences, vae.config.latent, RegressorConfig(steps=args.regressor_steps))
+    reg_config = RegressorConfig(steps=args.regressor_steps, posed_weight=args.posed_weight)
+    if reg_config.posed_weight > 0:  # the posed bodies of the simulations, for the posed collision term
+        for s, ref in zip(sequences, train_refs):
+            with np.load(ref, allow_pickle=False) as f:
+                s["posed"] = PosedFrames.build(f["body_vertices"], body.faces, s["transforms"], CanonicalBody(diffused, s["rest"], dtype=torch.float32))
+    reg, reg_record = train_regressor(sequences, vae.config.latent, reg_config, decoder=vae.decoder)
     torch.save(reg.state_dict(), out / "regressor.pt")
     reg_record["export"] = export_regressor(reg, out / "canonical_regressor.onnx")
     write_model_json(out, asset, vae_record, reg_record, [c.name for c in train_cases])
 
     # 5: scores against newton: validation (where choices are made) and test (reported only)
     rows = []
-    limit = CompressionLimit.for_garment(asset)
+    limit = StrainLimit.for_garment(asset)
     with torch.no_grad():
         z_template = vae.encode(torch.as_tensor(asset.vertices[None].astype(np.float32)))[0]
     for split in ("validation", "test"):
@@ -225,6 +254,9 @@ def main(argv: list[str] | None = None) -> None:
                 z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
                 X = vae.decoder(z[0]).numpy()
                 X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
+            # pushed out of the canonical body to the garment's margin, as the runtime does
+            decoded_inside = float((diffused.sdf(X) < 0).mean())
+            X, X_template = (push_out(diffused, x, margin(asset))[0] for x in (X, X_template))
             posed = limit(posed_frames(canonical, X, inp["transforms"]))  # as the runtime (inference.canonical)
             judged = judged_row(args.garment, case)
             model_score, after = score(posed, target, body_frames, body.faces, asset, judged)
@@ -235,13 +267,13 @@ def main(argv: list[str] | None = None) -> None:
                                     metadata=np.str_(json.dumps({"clip": f"{case.clip} {case.body} canonical{suffix}", "start": case.start})))
             rows.append({"split": split, "case": case.name, "model": model_score,
                          "template_diffused": score(posed_frames(canonical, X_template, inp["transforms"]), target, body_frames, body.faces, asset, judged)[0],
-                         "canonical_inside": float((diffused.sdf(X) < 0).mean()),
+                         "canonical_inside": decoded_inside,
                          "judge": None if judged is None else {m: {"error_cm": v["error_cm"], "inside_before": v["collisions_before"],
                                                                    "realism_failures": v.get("realism_failures")}
                                                                for m, v in judged["methods"].items()}})
             log.info("%s", json.dumps(rows[-1]))
     report = {"garment": args.garment, "train_cases": [c.name for c in train_cases], "data_wall_s": round(t_data, 1),
-              "vae": {k: vae_record[k] for k in ("config", "train_wall_s", "frames", "metrics", "export", "collision")},
+              "vae": {k: vae_record.get(k) for k in ("config", "train_wall_s", "frames", "metrics", "export", "collision", "reused_from")},
               "regressor": reg_record, "cases": rows, "wall_s": round(time.perf_counter() - t0, 1),
               "projection": asdict(ProjectionSettings())}
     (out / "report.json").write_text(json.dumps(report, indent=1))

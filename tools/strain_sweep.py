@@ -1,13 +1,15 @@
-"""The compression limit's ratio against the judge's realism rule, on the validation walk.
+"""The strain limit's ratios against the judge's realism rule, on the validation walk.
 
-    python tools/compression_sweep.py --garment trousers --garment suittrousers [--ratio 0.8 0.85 0.9]
+    python tools/strain_sweep.py --garment trousers --garment suittrousers --ratio 0.8 0.85 0.9
+    python tools/strain_sweep.py --garment dress --max-ratio inf 2.1 2.0 1.9
 
-For each ratio, every method of the judge that runs the limit (``inference.strain``) is judged
+For each pair of ratios (every --ratio with every --max-ratio; by default the garment's own),
+every method of the judge that runs the limit (``inference.strain``) is judged
 against the newton reference of each validation case (``training.judge.judge_case``; the
 references must be simulated: ``python -m training.reference --garment G --split validation``):
 error from newton (cm), edge p1 / p99, folded faces (%), roughness (deg) and the realism failures
 that count for a default (worse than newton by its margin and than the retarget by its
-tolerance). Validation only: the ratio is a choice (``MIN_RATIO_BY_CATEGORY``).
+tolerance). Validation only: the ratios are choices (``MIN_RATIO_BY_CATEGORY``, ``MAX_RATIO_BY_CATEGORY``).
 """
 from __future__ import annotations
 
@@ -30,16 +32,18 @@ METHODS = ("retarget", "canonical", "canonical-learned")
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--garment", action="append", required=True)
-    ap.add_argument("--ratio", type=float, nargs="+", default=[0.8, 0.85, 0.9])
+    ap.add_argument("--ratio", type=float, nargs="+", default=[None], help="shortest edge / rest length (compression)")
+    ap.add_argument("--max-ratio", type=float, nargs="+", default=[None], help="longest edge / rest length (stretch; inf: none)")
     args = ap.parse_args(argv)
     inputs = judge.Inputs.load()
     methods = {k: v for k, v in judge.METHODS.items() if k in METHODS}
-    call = strain.CompressionLimit.__call__
-    print("| ratio | garment | case | method | error cm | edge p1 | edge p99 | folded % | rough deg | fails |\n|---|---|---|---|---|---|---|---|---|---|")
+    call = strain.StrainLimit.__call__
+    print("| ratio | max ratio | garment | case | method | error cm | edge p1 | edge p99 | folded % | rough deg | fails |\n|---|---|---|---|---|---|---|---|---|---|---|")
     try:
-        for ratio in args.ratio:
-            # every limit built by the pipeline runs at this ratio
-            strain.CompressionLimit.__call__ = lambda self, vertices, r=None, iterations=strain.ITERATIONS, _q=ratio: call(self, vertices, _q, iterations)
+        for ratio, max_ratio in [(a, b) for a in args.ratio for b in args.max_ratio]:
+            # every limit built by the pipeline runs at these ratios (None: its own)
+            strain.StrainLimit.__call__ = (lambda self, vertices, r=None, iterations=strain.ITERATIONS, m=None, _q=ratio, _m=max_ratio:
+                                           call(self, vertices, _q, iterations, _m))
             for g in args.garment:
                 for case in SPLITS["validation"]:
                     row = judge.judge_case(inputs, case, g, judge.REFERENCE_DIR, methods)
@@ -49,10 +53,10 @@ def main(argv: list[str] | None = None) -> None:
                     for m, v in row["methods"].items():
                         r = v["realism"]
                         fails = judge.worse_on_realism(r, row["reference"]["realism"], base)
-                        print(f"| {ratio:g} | {g} | {case.name} | {m} | {v['error_cm']:.2f} | {r['edge_p1']:.3f} | {r['edge_p99']:.3f} | "
+                        print(f"| {ratio} | {max_ratio} | {g} | {case.name} | {m} | {v['error_cm']:.2f} | {r['edge_p1']:.3f} | {r['edge_p99']:.3f} | "
                               f"{r['folded_pct']:.2f} | {r['roughness_deg']:.1f} | {', '.join(fails)} |", flush=True)
     finally:
-        strain.CompressionLimit.__call__ = call
+        strain.StrainLimit.__call__ = call
 
 
 if __name__ == "__main__":
