@@ -209,3 +209,38 @@ def test_the_compiled_interpolation_equals_the_numpy_one(built):
     for fine, coarse in ((diffused.skin["fine"], diffused.skin["coarse"]), (diffused.sdf_tables["fine"], diffused.sdf_tables["coarse"])):
         np.testing.assert_allclose(g.interpolate(p, fine, coarse), g.interpolate_numpy(p, fine, coarse), atol=2e-6)
     assert g.interpolate(p.reshape(2, 1100, 3), fine, coarse).shape == (2, 1100, 1)
+
+
+def test_the_posed_term_keeps_the_projected_garment_out_of_the_simulated_body(built):
+    """E_posed (``ProjectionSettings.w_posed``): a target pressed 2 mm into the posed body is
+    projected with its posed garment back out of it; without the term most of it stays in. (The
+    linear hinge against the quadratic E_rec moves a point at most w_posed / 2 = 5 mm from its target.)"""
+    torch = pytest.importorskip("torch")
+    from inference.garment import GarmentCatalog
+    from training.physics import ClothGeometry
+    from training.projection import CanonicalBody, Projector, ProjectionSettings, posed_contacts
+
+    diffused, _ = built
+    body = BodyModel.load()
+    asset = GarmentCatalog.load().get("tshirt")
+    heavy = body.shape(np.ones((1, 6), np.float32))
+    _, T = body.pose(heavy.rest_bone_poses, np.zeros((1, 1, body.num_bones, 3), np.float32), np.zeros((1, 1, 3), np.float32))
+    body_v = body.skin(heavy.rest_vertices, T)[0]  # (1, Vb, 3)
+    canonical = CanonicalBody(diffused, heavy.rest_vertices[0])
+    Tt = torch.as_tensor(T[0, 0], dtype=torch.float64)
+    with torch.no_grad():
+        posed = canonical.pose(torch.as_tensor(asset.vertices, dtype=torch.float64), Tt)[0]
+    b, n = posed_contacts(posed.numpy()[None], body_v, body.faces, torch.float64)[0]
+    depth = ((posed - b) * n).sum(-1).numpy()
+    near = depth < 0.01  # the vertices within a centimetre of the skin, pressed 2 mm past it
+    target = posed.numpy() - np.where(near, depth + 0.002, 0.0)[:, None] * n.numpy()
+    assert near.mean() > 0.05
+    inside = {}
+    for w in (0.0, 1e-2):
+        projector = Projector(canonical, ClothGeometry.from_asset(asset), ProjectionSettings(w_posed=w, first_frame_iterations=100))
+        X, _ = projector.sequence(target[None], T[0], asset.vertices, (body_v, body.faces))
+        with torch.no_grad():
+            x = canonical.pose(torch.as_tensor(X[0], dtype=torch.float64), Tt)[0]
+        inside[w] = float((((x - b) * n).sum(-1) < 0).double().mean())
+    assert inside[0.0] > 0.5 * near.mean()
+    assert inside[1e-2] < 0.1 * inside[0.0], inside

@@ -62,17 +62,18 @@ OUT_DIR = BUILD / "canonical_model"
 TRAIN_CASES = ("02_01:neutral", "02_01:heavy", "02_04:train-tall", "01_14:neutral", "01_14:heavy", "02_05:train-slim")
 
 
-def project(reference: Path, out: Path, body: BodyModel, catalog: GarmentCatalog, diffused: DiffusedBody) -> Path:
+def project(reference: Path, out: Path, body: BodyModel, catalog: GarmentCatalog, diffused: DiffusedBody,
+            settings: ProjectionSettings = ProjectionSettings()) -> Path:
     """Canonical frames of one reference simulation (cached)."""
     if out.exists():
         return out
     with np.load(reference, allow_pickle=False) as f:
         meta = json.loads(str(f["metadata"]))
-        targets = f["vertices"]
+        targets, body_frames = f["vertices"], f["body_vertices"]
     asset = catalog.get(meta["garment"])
     transforms, rest = reference_transforms(body, meta)
-    projector = Projector(CanonicalBody(diffused, rest), ClothGeometry.from_asset(asset))
-    X, reports = projector.sequence(targets, transforms, asset.vertices)
+    projector = Projector(CanonicalBody(diffused, rest), ClothGeometry.from_asset(asset), settings)
+    X, reports = projector.sequence(targets, transforms, asset.vertices, (body_frames, body.faces))
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, canonical=X, report=np.str_(json.dumps({"reference": reference.name, **summarise(reports)})))
     return out
@@ -173,12 +174,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--diffused", type=Path, default=DEFAULT_PATH)
     p.add_argument("--vae-steps", type=int, nargs=2, default=None)
+    p.add_argument("--vae-lap-weight", type=float, default=VAEConfig.lap_weight, help="eq. 6.13's Laplacian weight (thesis lambda_1)")
+    p.add_argument("--vae-basis", type=int, default=VAEConfig.basis, help="harmonics per axis of the decoder's output basis")
     p.add_argument("--regressor-steps", type=int, default=RegressorConfig.steps)
     p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
     p.add_argument("--posed-weight", type=float, default=RegressorConfig.posed_weight,
                    help="weight of the regressor's posed-space collision term (training.posed_collision; 0: off)")
     p.add_argument("--reuse-vae", type=Path, default=None, metavar="DIR",
                    help="a trained model directory (vae.pt, canonical.json, its decoder): keep its VAE, train the regressor only")
+    p.add_argument("--projection-posed", type=float, default=ProjectionSettings.w_posed,
+                   help="weight of the projection's posed-space collision term (training.projection E_posed; 0: off)")
     p.add_argument("--tag", default="", help="suffix of the output directory build/canonical_model/<garment><tag>")
     p.add_argument("--install", action="store_true", help="copy the runtime's files into assets/models/<garment>/")
     args = p.parse_args(argv)
@@ -192,20 +197,22 @@ def main(argv: list[str] | None = None) -> None:
     asset = catalog.get(args.garment)
     settings = ReferenceSettings(device="cpu")
 
-    # 1-2: simulations and their projections
+    # 1-2: simulations and their projections (each projection setting cached apart)
+    projection = ProjectionSettings(w_posed=args.projection_posed)
+    canonical_dir = CANONICAL_DIR if projection.w_posed == 0 else CANONICAL_DIR / f"posed{projection.w_posed:g}"
     train_cases = [Case(c, b, args.start, args.frames) for c, b in pairs]
     sequences, canonical_paths, train_refs = [], [], []
     for case in train_cases:
         ref = simulate_case(args.garment, case, settings, TRAIN_REFERENCE_DIR, body, catalog)
         train_refs.append(ref)
-        canonical_paths.append(project(ref, CANONICAL_DIR / "train" / ref.name, body, catalog, diffused))
+        canonical_paths.append(project(ref, canonical_dir / "train" / ref.name, body, catalog, diffused, projection))
         sequences.append(case_inputs(body, case))
     validation = []
     for case in SPLITS["validation"]:
         ref = reference_path(args.garment, case.key, ReferenceSettings(), REFERENCE_DIR)
         if not ref.exists():
             ref = simulate_case(args.garment, case, ReferenceSettings(), REFERENCE_DIR, body, catalog)
-        validation.append((case, ref, project(ref, CANONICAL_DIR / "validation" / ref.name, body, catalog, diffused)))
+        validation.append((case, ref, project(ref, canonical_dir / "validation" / ref.name, body, catalog, diffused, projection)))
     t_data = time.perf_counter() - t0
 
     # 3: VAE
@@ -214,7 +221,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.reuse_vae is not None:
         vae, vae_record = reuse_vae(args.reuse_vae, asset, out)
     else:
-        vae_config = VAEConfig() if args.vae_steps is None else VAEConfig(steps_reconstruction=args.vae_steps[0], steps_collision=args.vae_steps[1])
+        steps = {} if args.vae_steps is None else {"steps_reconstruction": args.vae_steps[0], "steps_collision": args.vae_steps[1]}
+        vae_config = VAEConfig(lap_weight=args.vae_lap_weight, basis=args.vae_basis, **steps)
         train_X = load_canonical(canonical_paths)
         vae, vae_record = train_vae(np.concatenate([train_X, asset.vertices[None].astype(np.float32)]), asset.vertices, asset.faces, asset.edges,
                                     diffused, vae_config, load_canonical([v[2] for v in validation]), collision=not args.no_collision)
@@ -275,7 +283,7 @@ def main(argv: list[str] | None = None) -> None:
     report = {"garment": args.garment, "train_cases": [c.name for c in train_cases], "data_wall_s": round(t_data, 1),
               "vae": {k: vae_record.get(k) for k in ("config", "train_wall_s", "frames", "metrics", "export", "collision", "reused_from")},
               "regressor": reg_record, "cases": rows, "wall_s": round(time.perf_counter() - t0, 1),
-              "projection": asdict(ProjectionSettings())}
+              "projection": asdict(projection)}
     (out / "report.json").write_text(json.dumps(report, indent=1))
     log.info("wrote %s", out / "report.json")
     if args.install:
