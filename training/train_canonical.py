@@ -176,6 +176,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--vae-steps", type=int, nargs=2, default=None)
     p.add_argument("--vae-lap-weight", type=float, default=VAEConfig.lap_weight, help="eq. 6.13's Laplacian weight (thesis lambda_1)")
     p.add_argument("--vae-basis", type=int, default=VAEConfig.basis, help="harmonics per axis of the decoder's output basis")
+    p.add_argument("--vae-latent", type=int, default=VAEConfig.latent, help="latent size (thesis: 25)")
     p.add_argument("--regressor-steps", type=int, default=RegressorConfig.steps)
     p.add_argument("--no-collision", action="store_true", help="VAE without eq. 6.16 (ablation)")
     p.add_argument("--posed-weight", type=float, default=RegressorConfig.posed_weight,
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> None:
         vae, vae_record = reuse_vae(args.reuse_vae, asset, out)
     else:
         steps = {} if args.vae_steps is None else {"steps_reconstruction": args.vae_steps[0], "steps_collision": args.vae_steps[1]}
-        vae_config = VAEConfig(lap_weight=args.vae_lap_weight, basis=args.vae_basis, **steps)
+        vae_config = VAEConfig(lap_weight=args.vae_lap_weight, basis=args.vae_basis, latent=args.vae_latent, **steps)
         train_X = load_canonical(canonical_paths)
         vae, vae_record = train_vae(np.concatenate([train_X, asset.vertices[None].astype(np.float32)]), asset.vertices, asset.faces, asset.edges,
                                     diffused, vae_config, load_canonical([v[2] for v in validation]), collision=not args.no_collision)
