@@ -117,13 +117,15 @@ def reuse_vae(src: Path, asset, out: Path) -> tuple[GarmentVAE, dict]:
 
 
 def case_inputs(body: BodyModel, case: Case) -> dict:
-    """Phenotypes, gamma (T, F) and skinning transforms (T, J, 4, 4) of a case's window."""
+    """Phenotypes, gamma (T, F) and skinning transforms (T, J, 4, 4) of a case's window; gamma
+    from the clip's frame 0 to the window's end (``history``) and the window's ``start``."""
     shape, motion, start = case_motion(body, case)
     gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)[0]
     window = slice(start, start + case.frames)
     _, T = body.pose(shape.rest_bone_poses, motion.rotations[None, window], motion.translation[None, window])
     ph = np.asarray(BODIES[case.body], np.float32)
-    return {"phenotypes": ph, "gamma": gamma[window], "transforms": T[0], "rest": shape.rest_vertices[0], "shape": shape}
+    return {"phenotypes": ph, "gamma": gamma[window], "history": gamma[:start + case.frames], "start": start,
+            "transforms": T[0], "rest": shape.rest_vertices[0], "shape": shape}
 
 
 @torch.no_grad()
@@ -260,7 +262,9 @@ def main(argv: list[str] | None = None) -> None:
                 target, body_frames = f["vertices"], f["body_vertices"]
             canonical = CanonicalBody(diffused, inp["rest"])
             with torch.no_grad():
-                z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["gamma"][None]), reg.initial_state(1))
+                # from the clip's frame 0, as the judge runs the learned dynamics; the window's frames
+                z, _ = reg(torch.as_tensor(inp["phenotypes"][None]), torch.as_tensor(inp["history"][None]), reg.initial_state(1))
+                z = z[:, inp["start"]:]
                 X = vae.decoder(z[0]).numpy()
                 X_template = np.repeat(vae.decoder(z_template).numpy(), len(target), 0)
             # pushed out of the canonical body to the garment's margin, as the runtime does
