@@ -23,10 +23,12 @@ every edge is short. Edges within [min_ratio, max_ratio] never move anything. Th
 side leaves the shape (mean vertex error against the reference) unchanged to 0.01 mm on the
 validation cases.
 
-The stretch side exists for the learned canonical dress (``MAX_RATIO_BY_CATEGORY``): one rest
-geometry worn by the heavy body stretches the newton reference's longest 1 % of edges to 1.89x
-their rest length and the retarget's to 2.12x; the decoded dress goes to 2.23x, its spikes at the
-opened V and placket. Every other category keeps ``MAX_RATIO`` (no stretch limit).
+The stretch side exists for the learned canonical dress and bottoms (``MAX_RATIO_BY_CATEGORY``):
+one rest geometry worn by the heavy body stretches the newton reference's longest 1 % of edges to
+1.89x their rest length (dress) and 1.76x (leggings), the retarget's to 2.12x and 1.95x; the
+decoded dress goes to 2.23x, its spikes at the opened V and placket, the learned leggings to
+2.03x once the final stage has lifted them off the skin. Tops and outer layers keep ``MAX_RATIO``
+(no stretch limit).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -54,10 +56,14 @@ ITERATIONS = 5
 # same to 0.01 cm; 0.9 folds more (+0.1 / +0.05 points).
 MIN_RATIO_BY_CATEGORY = {"bottom": 0.85}
 # The longest an edge may grow, as a share of its rest length: none, but for the categories of
-# MAX_RATIO_BY_CATEGORY (chosen on the validation walk:
-# ``python tools/strain_sweep.py --garment dress --max-ratio inf 2.1 2.0 1.9``).
+# MAX_RATIO_BY_CATEGORY, each the loosest of the sweep at which no method fails the judge's
+# realism rule on the validation walk (``python tools/strain_sweep.py --garment dress --max-ratio
+# inf 2.1 2.0 1.9``; ``... --garment leggings --garment shorts --garment trousers --garment
+# suittrousers --max-ratio inf 2.0 1.9 1.8``: the learned leggings' edge p99 on the heavy body
+# 2.031 / 2.006 / 1.952 / 1.916, the retarget's tolerance 2.003; the other bottoms' errors
+# unchanged to 0.01 cm, their folded faces -0.1 point or less).
 MAX_RATIO = float("inf")
-MAX_RATIO_BY_CATEGORY = {"dress": 2.0}
+MAX_RATIO_BY_CATEGORY = {"dress": 2.0, "bottom": 1.9}
 
 
 @dataclass(frozen=True)
