@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import zlib
 
 from service.errors import PROBLEM_JSON
 
@@ -107,6 +108,18 @@ GZIP_SUFFIX = "-gzip"
 
 GZIP_MIN_BYTES = 1024  # smaller answers are sent as they are
 GZIP_LEVEL = 1  # the README's glb: 5.34 -> 3.34 MB in 92 ms; level 6 3.23 MB in 301 ms (one core)
+
+
+def gzip_mesh(payload: bytes) -> bytes:
+    """The gzip coding (RFC 1952, any client decodes it) of a drape's glb or NPZ, deflated with
+    zlib's Huffman-only strategy: no LZ77 string matching, which finds little to match in float
+    vertex data. Measured on one core (T-shirt, ``dance``; session 32), level 1 against Huffman
+    only: 30-frame npz 2.15 MB -> 1.86 MB in 41 ms against 1.88 MB in 13 ms; 30-frame glb 2.06 ->
+    1.52 MB in 29 ms against 1.51 MB in 13 ms; the README's 5.34 MB glb 3.38 MB in 68 ms against
+    3.47 MB in 32 ms; a 1-frame npz (faces included) 0.35 -> 0.21 MB in 3.9 ms against 0.23 MB in
+    2.0 ms. Deterministic (zlib's header has no time stamp): the answer's ETag names its bytes."""
+    deflate = zlib.compressobj(GZIP_LEVEL, zlib.DEFLATED, 16 + zlib.MAX_WBITS, 8, zlib.Z_HUFFMAN_ONLY)
+    return deflate.compress(payload) + deflate.flush()
 
 
 def accepts_gzip(accept_encoding: str | None) -> bool:

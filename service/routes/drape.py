@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 import asyncio
-import gzip
 
 from fastapi import APIRouter, Request
 from fastapi.responses import Response
 
 from service.cache import etag_matches, etag_of, wildcard
 from service.errors import ProblemException
-from service.http_rules import GZIP_LEVEL, GZIP_MIN_BYTES, accepts_gzip
+from service.http_rules import GZIP_MIN_BYTES, accepts_gzip, gzip_mesh
 from service.jobs import MEDIA_TYPES
 from service.parsing import KeyContext, accepted_formats, not_acceptable, request_body_openapi
 from service.schemas import BINARY as _BINARY, DRAPE_EXAMPLE
@@ -73,6 +72,6 @@ async def post_drape(request: Request) -> Response:
     if accepts_gzip(request.headers.get("accept-encoding")) and len(payload) >= GZIP_MIN_BYTES:
         # gzip here, on a thread (zlib lets go of the GIL), not in GZipMiddleware on the event loop:
         # a 22 MB glb takes ~0.4 s (the middleware passes answers that already have an encoding)
-        payload = await asyncio.to_thread(gzip.compress, payload, GZIP_LEVEL, mtime=0)
+        payload = await asyncio.to_thread(gzip_mesh, payload)
         headers["Content-Encoding"] = "gzip"
     return Response(content=payload, media_type=MEDIA_TYPES[drape_request.format], headers=headers)
