@@ -219,8 +219,10 @@ def drape(
     # per garment: the request's fit / dynamics, else the garment's default (never fit 'none',
     # which stays a uniform option: it changes the skinning transforms and the guard's rest body)
     methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults)
-    with timer("shape"):
-        hm08 = body.hm08_vertices(shape)
+    hm08 = None
+    if any(m.fit != "canonical" for m in methods):  # the MakeHuman bindings of the other fits (~0.7 ms)
+        with timer("shape"):
+            hm08 = body.hm08_vertices(shape)
     if options.lift_arms:
         with timer("arms"):
             lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation, segments)
