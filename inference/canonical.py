@@ -16,15 +16,16 @@ Two forms of X:
 - static (dynamics 'none'): the garment's template pushed out of the canonical body to its
   margin (``push_out``: the templates are made collision-free on the neutral body, 4 mm - 13 cm
   from its skin, so this moves nothing on the shipped catalog; it guards a template added later);
-  W~ and B~s are read once per request; once posed, the compression limit below (on the
+  W~ and B~s are read once per request; once posed, the strain limit below (on the
   validation walk it takes the static crew-neck tee's, crop top's and shirt's edge p1 from
   0.62-0.65 to 0.75-0.77, where the skinned baselines have 0.69-0.71);
 - learned (dynamics 'learned', thesis ch. 6.4): X_t = D(R(beta, gamma_1..t)), the regressor R
   into the latent of the garment's canonical VAE and its decoder D (``CanonicalGarment``: two
   ONNX models, a whole sequence in one call each, the GRU state in and out), pushed out to the
   margin; W~ and B~s are read at every frame's own points (eq. 6.7); once posed, its shortest
-  edges are pushed back to 0.8 of their rest length (``inference.strain``: the decoder's smooth
-  basis compresses the short edges under the arms).
+  edges are pushed back to 0.8 of their rest length and, for a dress or a bottom, its longest
+  pulled back to 2.0 / 1.9 (``inference.strain``: the decoder's smooth basis compresses the short
+  edges under the arms, and overstretches a one-size garment on a heavy body).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -199,7 +200,7 @@ class CanonicalModels:
         return (X + S @ (v - d.neutral_vertices)).astype(np.float32), W
 
     def strain_limit(self, garment: GarmentAsset) -> StrainLimit:
-        """The garment's compression limit (``inference.strain``) on its rest lengths, once per garment."""
+        """The garment's strain limit (``inference.strain``) on its rest lengths, once per garment."""
         with self._lock:
             if garment.id not in self._limits:
                 self._limits[garment.id] = StrainLimit.for_garment(garment)

@@ -11,8 +11,9 @@ self-supervised with the SNUG losses):
   the diffused body's offsets and skinned with its weights, both read at X (eq. 6.7-6.8,
   ``inference.canonical``); with dynamics 'none' X is the static template, with 'learned'
   X_t = D(R(beta, gamma_1..t)) (ch. 6.4: the regressor into the canonical VAE's latent, and its
-  decoder). Then the compression limit (``inference.strain``: no edge much below 0.8 of its rest
-  length, where eq. 6.7 squeezes the cloth under the arms). Collisions: the final exact stage
+  decoder). Then the strain limit (``inference.strain``: no edge much below 0.8 of its rest
+  length, where eq. 6.7 squeezes the cloth under the arms; a dress's or bottom's none much above
+  2.0 / 1.9 of it). Collisions: the final exact stage
   alone (the guard's pushes are for garments in the posed space; a layered outfit keeps its push
   out of the body)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
@@ -276,7 +277,7 @@ def drape(
                 X, fields = push_fields(d, X, margin(g))
                 offsets = d.offsets(shape.rest_vertices[0])
                 frames = d.pose(X, offsets, transforms[0], fields)
-            with timer("strain"):  # the decoded garment's shortest edges back to 0.8 of their rest length
+            with timer("strain"):  # the decoded garment's edges back within its category's strain limit (inference.strain)
                 posed.append(canonical.strain_limit(g)(frames)[None])
             if len(garments) > 1:  # the guard and the layer stage plan on the sequence's mean canonical form
                 with timer("fit"):
@@ -296,7 +297,7 @@ def drape(
         with timer("skin"):
             skinned = linear_blend_skinning(unposed_t, w, garment_transforms)
         if m.fit == "canonical":
-            with timer("strain"):  # eq. 6.7's squeeze under the arms: shortest edges back to 0.8 of their rest length
+            with timer("strain"):  # eq. 6.7's squeeze under the arms (and a stretched dress or bottom): the strain limit
                 skinned = canonical.strain_limit(g)(skinned[0])[None]
         posed.append(skinned)
         unposed_fits.append(unposed)

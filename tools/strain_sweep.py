@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         for ratio, max_ratio in [(a, b) for a in args.ratio for b in args.max_ratio]:
             # every limit built by the pipeline runs at these ratios (None: its own)
-            strain.StrainLimit.__call__ = (lambda self, vertices, r=None, iterations=strain.ITERATIONS, m=None, _q=ratio, _m=max_ratio:
+            strain.StrainLimit.__call__ = (lambda self, vertices, min_ratio=None, iterations=strain.ITERATIONS, max_ratio=None, _q=ratio, _m=max_ratio:
                                            call(self, vertices, _q, iterations, _m))
             for g in args.garment:
                 for case in SPLITS["validation"]:
