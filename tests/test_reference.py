@@ -76,6 +76,8 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
         assert np.isfinite(m["error_cm"]) and 0 <= m["error_cm"] < 10
         assert m["collisions_after"]["inside_pct_clean"] == 0.0
         assert all(np.isfinite(x) for x in m["realism"].values())
+        mv = m["collision_moves"]  # what the collision stages did: a share, and moves in mm
+        assert 0.0 <= mv["moved_pct"] <= 100.0 and 0.0 <= mv["move_p99_mm"] <= mv["move_max_mm"] < 100.0
     assert row["reference"]["dressed"] and row["reference"]["slid_pct"] < 1.0
     ref_real = row["reference"]["realism"]
     assert ref_real["folded_pct"] < 5.0 and 0.5 < ref_real["edge_p1"] <= ref_real["edge_p99"] < 2.0
@@ -96,6 +98,19 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     assert (chosen["fit"], chosen["dynamics"]) == ("canonical", "none")
     text = judge.markdown({"validation": [row]}, judge.select_defaults([row]), "test")
     assert "| trousers |" in text and "newton" in text
+
+
+def test_collision_moves_count_the_moved_vertex_frames_in_mm():
+    from training import judge
+
+    before = np.zeros((2, 100, 3))
+    after = before.copy()
+    after[0, :10, 2] = np.linspace(0.001, 0.010, 10)  # 10 of 200 vertex-frames moved, 1-10 mm
+    after[1, 0, 0] = 5e-5  # below the 0.1 mm threshold: not moved
+    mv = judge._moves(before, after)
+    assert mv["moved_pct"] == 5.0 and mv["move_max_mm"] == pytest.approx(10.0)
+    assert 9.0 < mv["move_p99_mm"] <= 10.0
+    assert judge._moves(before, before) == {"moved_pct": 0.0, "move_p99_mm": 0.0, "move_max_mm": 0.0}
 
 
 def _realism(folded=1.0, p1=0.9, p99=1.1, rough=5.0, jump=0.01):

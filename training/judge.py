@@ -217,6 +217,26 @@ def _collisions(frames: np.ndarray, body_frames: np.ndarray, faces: np.ndarray) 
     return {"inside_pct": r["inside_pct"], "inside_pct_clean": r["inside_pct_clean"]}
 
 
+# A vertex moved by the collision stages when it moved farther than this, metres.
+MOVED_BY_COLLISIONS_M = 1e-4
+
+
+def _moves(before: np.ndarray, after: np.ndarray) -> dict[str, float]:
+    """What the collision stages did to a method's vertices (T, V, 3) metres: the % of
+    vertex-frames they moved (> MOVED_BY_COLLISIONS_M) and the p99 and largest of those moves, mm."""
+    d = np.linalg.norm(np.asarray(after, np.float64) - np.asarray(before, np.float64), axis=-1).ravel()
+    moved = d[d > MOVED_BY_COLLISIONS_M]
+    return {"moved_pct": 100.0 * len(moved) / max(len(d), 1),
+            "move_p99_mm": 1e3 * float(np.quantile(moved, 0.99)) if len(moved) else 0.0,
+            "move_max_mm": 1e3 * float(moved.max()) if len(moved) else 0.0}
+
+
+def _moves_txt(m: dict) -> str:
+    """The report's cell of a method's collision moves (rows cached before they were measured: -)."""
+    mv = m.get("collision_moves")
+    return "-" if mv is None else f"{_fmt(mv['moved_pct'], 2)}: {_fmt(mv['move_p99_mm'], 1)} / {_fmt(mv['move_max_mm'], 1)}"
+
+
 def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = REFERENCE_DIR, methods: dict[str, DrapeOptions] = METHODS) -> dict | None:
     """Every method against the reference on one case; None when the reference is not simulated."""
     path = reference_path(garment, case.key, REFERENCE, reference_dir)
@@ -263,6 +283,7 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
                         SKIN_METRIC: skin_crossings(v_after, asset.faces, body_frames, body.faces)},
             "collisions_before": _collisions(v_before, body_frames, body.faces),
             "collisions_after": _collisions(v_after, body_frames, body.faces),
+            "collision_moves": _moves(v_before, v_after),
             "energies": _energies(asset, v_before),
             "ms_per_frame": ms_per_frame,
         }
@@ -368,7 +389,9 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         "Error: mean vertex distance to the reference, cm. Realism (inference/metrics.py `realism`): edge length / rest "
         "length p1 and p99, % of faces folded over by > 90 deg against a neighbour, RMS hinge angle (deg), largest "
         "frame-to-frame vertex jump (cm). Collisions: % of garment vertices inside the body (exact winding number), "
-        "before / after the final collision stage, away from body self-intersections. Energies: strain + bending per "
+        "before / after the final collision stage, away from body self-intersections; moved: % of the vertex-frames the "
+        "collision stages moved (more than 0.1 mm; for fit 'canonical' the final stage alone, for the posed-space methods the "
+        "guard and the final stage), the p99 and the largest of those moves, mm. Energies: strain + bending per "
         "frame before the collision stage, J (diagnostics). ms: pipeline wall time per garment-frame on this machine, "
         "collision stages included. Realism: 'vs newton' lists the metrics worse than the reference by the margins of "
         "`REALISM_MARGINS`; 'worse' those that are also worse than the retarget baseline by `RETARGET_TOLERANCE` "
@@ -395,8 +418,8 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         if missing and missing.get(split):
             lines += [f"Not simulated (no reference, so not judged): {', '.join(missing[split])}. "
                       "`python -m training.reference --garment G --split " + split + "` fills them in.", ""]
-        lines += ["| garment | case | method | error cm (mu 0.3) | error cm (mu 0) | edge p1 | edge p99 | folded % | rough deg | jump max cm | skin pairs | inside % before / after | strain+bend J | ms/frame | realism vs newton | worse |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines += ["| garment | case | method | error cm (mu 0.3) | error cm (mu 0) | edge p1 | edge p99 | folded % | rough deg | jump max cm | skin pairs | inside % before / after | moved %: p99 / max mm | strain+bend J | ms/frame | realism vs newton | worse |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             ref = r["reference"]
             rr = ref["realism"]
@@ -409,7 +432,7 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
             dressed = slid + ("" if ref.get("dressed", True) else "; NOT DRESSED")
             lines.append(f"| {r['garment']} | {r['case']} | **newton** ({ref['seconds_per_frame']:.1f} s/frame; spread {unc_txt}{dressed}) | 0 | "
                          f"{_fmt(unc['friction 0']) if 'friction 0' in unc else '-'} | {_fmt(rr['edge_p1'])} | {_fmt(rr['edge_p99'])} | {_fmt(rr['folded_pct'])} | "
-                         f"{_fmt(rr['roughness_deg'], 1)} | {_fmt(100 * rr['jump_max_m'], 1)} | {_skin(rr)} | {_fmt(ref['collisions']['inside_pct_clean'], 3)} | "
+                         f"{_fmt(rr['roughness_deg'], 1)} | {_fmt(100 * rr['jump_max_m'], 1)} | {_skin(rr)} | {_fmt(ref['collisions']['inside_pct_clean'], 3)} | - | "
                          f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | - | | |")
             for name, m in r["methods"].items():
                 mr = m["realism"]
@@ -417,7 +440,7 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
                 lines.append(f"| {r['garment']} | {r['case']} | {name} | {_fmt(m['error_cm'])} | {_fmt(m['error_friction0_cm']) if 'error_friction0_cm' in m else '-'} | "
                              f"{_fmt(mr['edge_p1'])} | {_fmt(mr['edge_p99'])} | {_fmt(mr['folded_pct'])} | {_fmt(mr['roughness_deg'], 1)} | "
                              f"{_fmt(100 * mr['jump_max_m'], 1)} | {_skin(mr)} | {_fmt(m['collisions_before']['inside_pct_clean'], 3)} / {_fmt(m['collisions_after']['inside_pct_clean'], 3)} | "
-                             f"{_fmt(e['strain_j'] + e['bending_j'], 3)} | {_fmt(m['ms_per_frame'], 1)} | {', '.join(m['realism_vs_reference'])} | {', '.join(m['realism_failures'])} |")
+                             f"{_moves_txt(m)} | {_fmt(e['strain_j'] + e['bending_j'], 3)} | {_fmt(m['ms_per_frame'], 1)} | {', '.join(m['realism_vs_reference'])} | {', '.join(m['realism_failures'])} |")
         lines.append("")
         summary = _summary(rows)
         if summary:
@@ -470,7 +493,7 @@ def _row_key(case: Case, garment: str, reference_dir: Path) -> str:
                    inference.winding, inference.winding_kernels, inference.intersections, inference.repair_kernels,
                    inference.mesh, inference.mesh_kernels):
         h.update(Path(inspect.getsourcefile(module)).read_bytes())
-    for fn in (judge_case, realism_failures, worse_on_realism, slid_pct, carried_vertices, mean_error_cm, _energies, _collisions):
+    for fn in (judge_case, realism_failures, worse_on_realism, slid_pct, carried_vertices, mean_error_cm, _energies, _collisions, _moves):
         h.update(inspect.getsource(fn).encode())
     h.update(repr((METHODS, REALISM_MARGINS, RETARGET_TOLERANCE, SLID_M, MAX_SLID_PCT)).encode())
     for settings in (REFERENCE, *UNCERTAINTY.values()):
