@@ -47,6 +47,17 @@ from inference.learned import MODELS_DIR, MissingModelError, ort_session
 from inference.strain import StrainLimit
 
 MODEL_FILE = "canonical.json"  # in assets/models/<garment>/, next to the ONNX files it names
+# A learned canonical model serves, as a garment's default, the bodies whose phenotypes lie within
+# this Euclidean distance of one of its training bodies (canonical.json's ``train_phenotypes``;
+# phenotypes in [0, 1], ``inference.body.PHENOTYPE_LABELS``); farther, its regressor (trained on
+# four bodies) extrapolates worse than the static canonical form, which the default falls back to
+# (``covers``). Chosen on the validation clip on three bodies no model trains on, 0.23, 0.48 and
+# 0.93 from the nearest training body (``training.protocol.SPLITS["bodies"]``; docs/benchmarks.md):
+# the learned tops are closer to newton than the static form at 0.23 (mean 1.69 against 2.10 cm)
+# but not at 0.48 (3.26 against 2.99); the learned bottoms and dress not even at 0.23 (3.15
+# against 2.32). Each range is the midpoint between the last distance that holds and the next.
+BODY_RANGE = 0.1
+BODY_RANGE_BY_CATEGORY = {"top": 0.35}
 
 # Central-difference step of the SDF gradient, metres (well inside the fine grid's 15 mm cells).
 GRADIENT_STEP_M = 0.002
@@ -163,6 +174,7 @@ class CanonicalModels:
         self._templates: dict[str, tuple[np.ndarray, np.ndarray, scipy.sparse.csr_matrix]] = {}
         self._learned: dict[str, CanonicalGarment] = {}
         self._limits: dict[str, StrainLimit] = {}
+        self._ranges: dict[str, np.ndarray | None] = {}
         self._lock = threading.Lock()
 
     @property
@@ -209,6 +221,26 @@ class CanonicalModels:
     def available(self, garment_id: str) -> bool:
         """Whether the garment ships a learned canonical model (without loading it)."""
         return (self.models_dir / garment_id / MODEL_FILE).exists()
+
+    def train_phenotypes(self, garment_id: str) -> np.ndarray | None:
+        """The phenotypes (n, 6) of the bodies the garment's learned model was trained on
+        (canonical.json's ``train_phenotypes``, read once); None without a learned model or a record."""
+        with self._lock:
+            if garment_id not in self._ranges:
+                path = self.models_dir / garment_id / MODEL_FILE
+                bodies = json.loads(path.read_text()).get("train_phenotypes") if path.exists() else None
+                self._ranges[garment_id] = None if not bodies else np.asarray(list(bodies.values()), np.float32).reshape(-1, 6)
+            return self._ranges[garment_id]
+
+    def covers(self, garment: GarmentAsset, phenotypes: np.ndarray) -> bool:
+        """Whether the garment's learned model serves a body by default: its phenotypes (6,) or
+        (1, 6) within its category's range (``BODY_RANGE_BY_CATEGORY``, else ``BODY_RANGE``) of a
+        training body's (a model with no record covers every body)."""
+        train = self.train_phenotypes(garment.id)
+        if train is None:
+            return True
+        p = np.asarray(phenotypes, np.float32).reshape(1, 6)
+        return bool(np.linalg.norm(train - p, axis=1).min() <= BODY_RANGE_BY_CATEGORY.get(garment.category, BODY_RANGE))
 
     def learned(self, garment_id: str, field: str = "/options/dynamics") -> CanonicalGarment:
         """The garment's learned canonical model; ``MissingModelError`` (naming ``field``) if none."""

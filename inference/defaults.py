@@ -17,7 +17,7 @@ options (None: each garment's own default) into the method each garment runs.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal, NoReturn, get_args
@@ -147,11 +147,15 @@ def default_methods(assets_dir: Path | str = ASSETS_DIR) -> DefaultMethods:
 
 
 def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics: str | None = None,
-                    defaults: DefaultMethods | None = None) -> list[Method]:
+                    defaults: DefaultMethods | None = None, covers: Callable[[str], bool] | None = None) -> list[Method]:
     """The method each garment runs: ``fit`` / ``dynamics`` where given (the same for every
     garment), else the garment's own default from ``defaults`` (default: ``default_methods()``,
     read only when an option is None).
 
+    covers : garment id -> whether its learned canonical model serves this body
+             (``inference.canonical.CanonicalModels.covers``): where it does not, a default of fit
+             'canonical' with dynamics 'learned' runs dynamics 'none' (the static canonical form)
+             unless the request names the dynamics
     returns : one ``Method`` per garment id, in order
     """
     if fit is not None and fit not in FIT_MODES:
@@ -160,5 +164,10 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
         raise InputValueError("/options/dynamics", f"{dynamics!r}, expected one of {list(DYNAMICS_MODES)} or null")
     if (fit is None or dynamics is None) and defaults is None:
         defaults = default_methods()
-    return [Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
-            for g in garment_ids]
+    out = []
+    for g in garment_ids:
+        m = Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
+        if dynamics is None and m == Method("canonical", "learned") and covers is not None and not covers(g):
+            m = Method("canonical", "none")  # beyond the learned model's body range: the static canonical form
+        out.append(m)
+    return out

@@ -219,7 +219,9 @@ def drape(
 
     # per garment: the request's fit / dynamics, else the garment's default (never fit 'none',
     # which stays a uniform option: it changes the skinning transforms and the guard's rest body)
-    methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults)
+    canonical = canonical or default_canonical()  # (loads nothing until a garment runs fit 'canonical')
+    methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults,
+                              covers=lambda i: canonical.covers(next(g for g in garments if g.id == i), shape.phenotypes))
     hm08 = None
     if any(m.fit != "canonical" for m in methods):  # the MakeHuman bindings of the other fits (~0.7 ms)
         with timer("shape"):
@@ -251,7 +253,6 @@ def drape(
             learned = [models.get(g.id, "/options/fit" if m.fit == "learned" else "/options/dynamics") if c else None
                        for g, m, c in zip(garments, methods, ch4)]
     if any(m.fit == "canonical" for m in methods):
-        canonical = canonical or default_canonical()
         with timer("models"):  # raises MissingModelError for dynamics 'learned' where a garment ships none
             for g, m in zip(garments, methods):
                 if m.fit == "canonical" and m.dynamics == "learned":
@@ -384,7 +385,9 @@ def drape_chunks(
     Every other stage is per frame."""
     if chunk_frames < 1:
         raise InputShapeError("chunk_frames", ">= 1", (chunk_frames,))
-    methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults)
+    canonical = canonical or default_canonical()
+    methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults,
+                              covers=lambda i: canonical.covers(next(g for g in garments if g.id == i), shape.phenotypes))
     if options.lift_arms:
         lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation)
         motion, options = PoseSequence(lifted, motion.translation, motion.fps), options.replace(lift_arms=False)

@@ -217,7 +217,8 @@ class Runtime:
                 "", f"{motion.num_frames} frames x {per_frame} vertices exceed the limit of {limits.max_total_vertices} vertices per request"
             )
         options = o  # the request's options are the pipeline's (inference.options.DrapeOptions)
-        methods = resolve_methods([a.id for a in assets], o.fit, o.dynamics, self.defaults)
+        methods = resolve_methods([a.id for a in assets], o.fit, o.dynamics, self.defaults,
+                                  covers=lambda i: self.canonical.covers(next(a for a in assets if a.id == i), shape.phenotypes))
         return PreparedDrape(request, shape, motion, assets, options, methods, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:

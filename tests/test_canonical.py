@@ -160,3 +160,43 @@ def test_a_layered_canonical_outfit_keeps_the_layer_pushes_and_ends_outside_the_
     assert "guard" in r.timings_ms and "repair" in r.timings_ms
     for g in r.garments:
         assert not inside_mask(g.vertices, r.body_vertices, body.faces).any()
+
+
+def test_a_learned_canonical_model_covers_the_bodies_near_its_training_bodies(setup, tmp_path):
+    import json
+
+    from inference.canonical import BODY_RANGE, BODY_RANGE_BY_CATEGORY
+
+    _, catalog, canonical = setup
+    tshirt, trousers = catalog.get("tshirt"), catalog.get("trousers")
+    # the shipped models' record: their four training bodies (training.protocol.BODIES)
+    train = canonical.train_phenotypes("tshirt")
+    assert train.shape == (4, 6)
+    assert canonical.covers(tshirt, HEAVY) and canonical.covers(trousers, train[2])
+    step = np.array([1, -1, 1, -1, 1, -1], np.float32) / np.sqrt(6)  # a unit step in phenotype space
+    top, other = BODY_RANGE_BY_CATEGORY["top"], BODY_RANGE
+    assert canonical.covers(tshirt, train[0] + 0.9 * top * step) and not canonical.covers(tshirt, train[0] + 1.1 * top * step)
+    assert canonical.covers(trousers, train[0] + 0.9 * other * step) and not canonical.covers(trousers, train[0] + 1.1 * other * step)
+    # a model without a record of its bodies covers every body; no model, no range
+    (tmp_path / "tshirt").mkdir()
+    (tmp_path / "tshirt" / "canonical.json").write_text(json.dumps({"garment": "tshirt", "train_cases": ["synthetic"]}))
+    bare = CanonicalModels(models_dir=tmp_path)
+    far = np.array([0.0, 1.0, 0.0, 0.0, 1.0, 1.0], np.float32)  # an old, tall, thin woman
+    assert bare.train_phenotypes("tshirt") is None and bare.covers(tshirt, far) and bare.train_phenotypes("jacket") is None
+
+
+def test_the_default_drape_of_a_body_beyond_the_range_runs_the_static_canonical_form(setup):
+    body, catalog, canonical = setup
+    clip = ClipLibrary().load("walk")
+    motion = PoseSequence(clip.rotations[:2], clip.translation[:2], clip.fps)
+    far = np.array([[0.0, 1.0, 0.0, 0.0, 1.0, 1.0]], np.float32)  # no training body near
+    tshirt = catalog.get("tshirt")
+    assert not canonical.covers(tshirt, far[0]) and canonical.covers(tshirt, HEAVY[0])
+    options = DrapeOptions(lift_arms=False)
+    r = drape(body, body.shape(far), motion, [tshirt], options, canonical=canonical)
+    assert (r.garments[0].method.fit, r.garments[0].method.dynamics) == ("canonical", "none")
+    r = drape(body, body.shape(HEAVY), motion, [tshirt], options, canonical=canonical)
+    assert (r.garments[0].method.fit, r.garments[0].method.dynamics) == ("canonical", "learned")
+    # asked for by name, the learned model runs on any body
+    r = drape(body, body.shape(far), motion, [tshirt], options.replace(dynamics="learned"), canonical=canonical)
+    assert r.garments[0].method.dynamics == "learned"

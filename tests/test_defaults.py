@@ -88,6 +88,19 @@ def test_resolution_per_garment_and_explicit_overrides():
         DefaultMethod("none", "none", **ENTRY)
 
 
+def test_a_body_beyond_the_learned_canonical_models_range_gets_the_static_canonical_form():
+    table = DefaultMethods({"trousers": DefaultMethod("canonical", "learned", **ENTRY), "tshirt": DefaultMethod("learned", "learned", **ENTRY)})
+    ids = ["trousers", "tshirt"]
+    far = lambda g: False  # noqa: E731 - no learned model covers this body
+    assert resolve_methods(ids, None, None, table, covers=lambda g: True) == [Method("canonical", "learned"), Method("learned", "learned")]
+    # only the canonical-learned default falls back; the ch. 4 models have no body range
+    assert resolve_methods(ids, None, None, table, covers=far) == [Method("canonical", "none"), Method("learned", "learned")]
+    # an explicit dynamics is what the request asked for: never changed
+    assert resolve_methods(ids, None, "learned", table, covers=far) == [Method("canonical", "learned"), Method("learned", "learned")]
+    # the fit named, the dynamics left to the default ('learned'): still beyond the range
+    assert resolve_methods(ids, "canonical", None, table, covers=far) == [Method("canonical", "none")] * 2
+
+
 def test_pipeline_runs_each_garment_its_default(scene):
     """A drape layering a learned garment with a retargeted one gives each the vertices of an
     explicit drape with that garment's method (guard off: the garments are then independent)."""

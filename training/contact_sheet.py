@@ -135,11 +135,14 @@ def garment_methods(options: DrapeOptions, garment_ids: list[str]) -> list[tuple
 
 
 def describe(options: DrapeOptions, garment_ids: list[str]) -> str:
-    """'fit F, dynamics D' (one method for all garments) or 'id: F/D; ...' per garment."""
+    """'fit F, dynamics D' (one method for all garments) or 'id: F/D; ...' per garment; a default
+    learned canonical model is noted as running only within its body range (``inference.canonical.covers``)."""
     methods = garment_methods(options, garment_ids)
+    ranged = options.dynamics is None and ("canonical", "learned") in methods
+    note = " (learned canonical: on bodies beyond its range, dynamics none)" if ranged else ""
     if len(set(methods)) == 1:
-        return f"fit {methods[0][0]}, dynamics {methods[0][1]}"
-    return "; ".join(f"{g}: {f}/{d}" for g, (f, d) in zip(garment_ids, methods))
+        return f"fit {methods[0][0]}, dynamics {methods[0][1]}{note}"
+    return "; ".join(f"{g}: {f}/{d}" for g, (f, d) in zip(garment_ids, methods)) + note
 
 
 def torso_vertices(body: BodyModel) -> np.ndarray:

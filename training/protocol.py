@@ -37,6 +37,12 @@ BODIES: dict[str, np.ndarray] = {
     # woman and a tall muscular man
     "train-slim": np.array([0.0, 0.9, 0.3, 0.2, 0.2, 0.7], np.float32),
     "train-tall": np.array([1.0, 0.8, 0.7, 0.6, 0.8, 0.4], np.float32),
+    # validation-only bodies for the learned models' body range (``SPLITS["bodies"]``), 0.22, 0.48
+    # and 0.93 from the nearest training body: the neutral adult a little changed, a slim muscular
+    # man, and an old, tall, thin woman
+    "val-close": np.array([0.6, 0.85, 0.4, 0.6, 0.6, 0.4], np.float32),
+    "val-near": np.array([1.0, 0.85, 1.0, 0.3, 0.6, 0.3], np.float32),
+    "val-far": np.array([0.0, 1.0, 0.0, 0.0, 1.0, 1.0], np.float32),
 }
 
 
@@ -61,6 +67,9 @@ class Case:
 SPLITS: dict[str, tuple[Case, ...]] = {
     "validation": (Case("02_02", "neutral", 30, 20), Case("02_02", "heavy", 30, 20)),
     "test": (Case("01_01", "neutral", 120, 20), Case("01_01", "heavy", 120, 20), Case("02_07", "light-tall", 60, 20)),
+    # the validation clip on bodies no model trains on: how far from its training bodies a learned
+    # model holds (``inference.defaults``' body range is chosen here, never on the test split)
+    "bodies": (Case("02_02", "val-close", 30, 20), Case("02_02", "val-near", 30, 20), Case("02_02", "val-far", 30, 20)),
 }
 SMOKE = Case("02_02", "neutral", 30, 3)  # CI: three frames of the validation walk
 

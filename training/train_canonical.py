@@ -84,6 +84,9 @@ def write_model_json(out: Path, asset, vae_record: dict, reg_record: dict, train
     shapes and hashes, and what they were trained on."""
     meta = {"garment": asset.id, "vertices": int(asset.num_vertices), "method": "thesis ch. 6: regressor -> VAE latent -> decoder",
             "regressor": reg_record["export"], "decoder": vae_record["export"], "train_cases": train_cases,
+            # the training bodies' phenotypes: the model's body range (``inference.canonical.CanonicalModels.covers``)
+            "train_phenotypes": {b: [round(float(x), 4) for x in BODIES[b]]
+                                 for b in sorted({c.split(" ")[-1] for c in train_cases} & set(BODIES), key=list(BODIES).index)},
             "training": {"vae": {k: vae_record[k] for k in ("config", "train_wall_s", "frames", "collision") if k in vae_record},
                          "regressor": {k: reg_record[k] for k in ("config", "train_wall_s", "sequences") if k in reg_record}}}
     path = out / MODEL_FILE
