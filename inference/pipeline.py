@@ -11,11 +11,12 @@ self-supervised with the SNUG losses):
   the diffused body's offsets and skinned with its weights, both read at X (eq. 6.7-6.8,
   ``inference.canonical``); with dynamics 'none' X is the static template, with 'learned'
   X_t = D(R(beta, gamma_1..t)) (ch. 6.4: the regressor into the canonical VAE's latent, and its
-  decoder). Then the strain limit (``inference.strain``: no edge much below 0.8 of its rest
-  length, where eq. 6.7 squeezes the cloth under the arms; a dress's or bottom's none much above
-  2.0 / 1.9 of it). Collisions: the final exact stage
-  alone (the guard's pushes are for garments in the posed space; a layered outfit keeps its push
-  out of the body)
+  decoder; as a default only on bodies within the learned model's body range of its training
+  bodies, ``CanonicalModels.covers``, else the static X). Then the strain limit
+  (``inference.strain``: no edge much below 0.8 of its rest length, where eq. 6.7 squeezes the
+  cloth under the arms; a dress's or bottom's none much above 2.0 / 1.9 of it). Collisions: the
+  final exact stage alone (the guard's pushes are for garments in the posed space; a layered
+  outfit keeps its push out of the body)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
 - fit 'none'      : the neutral template, plain LBS
