@@ -122,6 +122,10 @@ def storage_problem() -> ProblemDetail:
     return ProblemDetail(507, "Insufficient storage", "the job store's disk is full; retry later", headers={"Retry-After": "60"})
 
 
+# Attempts at the store's set-up while another process creates it (``SqliteJobStore``).
+SETUP_ATTEMPTS = 20
+
+
 class SqliteJobStore:
     """The jobs table (thread-safe: one connection behind a lock, autocommit, WAL, fsync on commit)."""
 
@@ -133,17 +137,30 @@ class SqliteJobStore:
         self._lock = threading.Lock()
         self.db = sqlite3.connect(self.dir / "jobs.sqlite3", check_same_thread=False, isolation_level=None, timeout=30)
         self.db.row_factory = sqlite3.Row
+        for attempt in range(SETUP_ATTEMPTS):
+            try:
+                self._set_up()
+                break
+            except sqlite3.OperationalError as exc:
+                # two processes creating one new store at once: switching it to WAL does not wait
+                # on SQLite's busy timeout, so the second sees "locked"; it tries again shortly
+                if "locked" not in str(exc) or attempt == SETUP_ATTEMPTS - 1:
+                    raise
+                time.sleep(0.05 * (attempt + 1))
+        self.host = socket.gethostname()
+        self.owner = f"{self.host}:{os.getpid()}"
+        self.reserve = self.dir / "reserve"
+        self.degraded = False
+        self.restore_reserve()
+
+    def _set_up(self) -> None:
+        """WAL, fsync on commit, the schema (idempotent)."""
         with self._lock:
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=FULL")
             self.db.executescript(SCHEMA)
             if "client" not in {r["name"] for r in self.db.execute("PRAGMA table_info(jobs)")}:  # a store from before the quota
                 self.db.execute("ALTER TABLE jobs ADD COLUMN client TEXT")
-        self.host = socket.gethostname()
-        self.owner = f"{self.host}:{os.getpid()}"
-        self.reserve = self.dir / "reserve"
-        self.degraded = False
-        self.restore_reserve()
 
     def close(self) -> None:
         with self._lock:
