@@ -198,6 +198,10 @@ class CanonicalModels:
                 self._templates[garment.id] = (X, diffused.weights(X), diffused.shape_operator(X))
             return self._templates[garment.id]
 
+    def weights(self, garment: GarmentAsset) -> np.ndarray:
+        """W~(X) (V, J) float32 at the garment's static canonical form X (eq. 6.4), once per garment."""
+        return self._static(garment)[1]
+
     def rest_fit(self, garment: GarmentAsset, rest_vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The garment shaped to a body in its rest pose, T_G(X, beta) = X + B~s(X, beta) (eq. 6.8),
         (V, 3) float32, and its skinning weights W~(X) (V, J) (eq. 6.4), X the static canonical form.

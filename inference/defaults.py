@@ -5,8 +5,15 @@ protocol's results (docs/evaluation.md: the learned model ships as a garment's d
 where it beats the baselines, otherwise the baseline does):
 
     {"format": 1,
-     "garments": {"<garment id>": {"fit": "learned" | "retarget", "dynamics": "learned" | "none",
-                                   "reason": "<one sentence>", "evidence": "docs/evaluation.md"}}}
+     "garments": {"<garment id>": {"fit": "canonical" | "learned-canonical" | "learned" | "retarget",
+                                   "dynamics": "learned" | "none",
+                                   "reason": "<one sentence>", "evidence": "docs/evaluation.md",
+                                   "beyond_range": {"fit": ..., "dynamics": ..., "reason": ...}}}}
+
+``beyond_range`` (optional, only beside fit 'canonical' with dynamics 'learned'): the method a
+body beyond the learned canonical model's body range runs instead
+(``inference.canonical.CanonicalModels.covers``), chosen on the validation clip on bodies no
+model trains on (``training.protocol.SPLITS["bodies"]``); without it, the static canonical form.
 
 It names every catalog garment and nothing else (``DefaultMethods.load`` checks, so a bad file
 stops the service at start-up). fit 'none' (plain LBS of the neutral template) is never a
@@ -26,14 +33,18 @@ from inference.body import ASSETS_DIR
 from inference.errors import InputValueError
 from inference.garment import catalog_ids
 
-FitMode = Literal["canonical", "learned", "retarget", "none"]
+FitMode = Literal["canonical", "learned-canonical", "learned", "retarget", "none"]
 DynamicsMode = Literal["learned", "none"]
 FIT_MODES: tuple[str, ...] = get_args(FitMode)
 DYNAMICS_MODES: tuple[str, ...] = get_args(DynamicsMode)
-DEFAULT_FIT_MODES: tuple[str, ...] = ("canonical", "learned", "retarget")  # fit 'none' is explicit only (module docstring)
+DEFAULT_FIT_MODES: tuple[str, ...] = ("canonical", "learned-canonical", "learned", "retarget")  # fit 'none' is explicit only (module docstring)
+# The fits posed by the diffused body (thesis eq. 6.7-6.8): no guard push, the final exact stage alone.
+CANONICAL_FITS: frozenset[str] = frozenset({"canonical", "learned-canonical"})
 DEFAULTS_FILE = "models/defaults.json"  # relative to the assets folder
 DEFAULTS_FORMAT = 1
 _ENTRY_KEYS = frozenset({"fit", "dynamics", "reason", "evidence"})
+_OPTIONAL_KEYS = frozenset({"beyond_range"})
+_BEYOND_KEYS = frozenset({"fit", "dynamics", "reason"})
 
 
 class DefaultMethodsError(ValueError):
@@ -42,11 +53,32 @@ class DefaultMethodsError(ValueError):
 
 @dataclass(frozen=True)
 class Method:
-    """What one garment runs: fit 'canonical' | 'learned' | 'retarget' | 'none', dynamics
-    'learned' | 'none' (``inference.pipeline`` describes each)."""
+    """What one garment runs: fit 'canonical' | 'learned-canonical' | 'learned' | 'retarget' |
+    'none', dynamics 'learned' | 'none' (``inference.pipeline`` describes each)."""
 
     fit: FitMode
     dynamics: DynamicsMode
+
+    @property
+    def canonical(self) -> bool:
+        """Posed by the diffused body (``CANONICAL_FITS``)."""
+        return self.fit in CANONICAL_FITS
+
+
+@dataclass(frozen=True)
+class BeyondRange:
+    """A default's method on bodies beyond its learned canonical model's body range, and why."""
+
+    fit: FitMode
+    dynamics: DynamicsMode
+    reason: str
+
+    @property
+    def method(self) -> Method:
+        return Method(self.fit, self.dynamics)
+
+    def __post_init__(self):
+        _check_default(self.fit, self.dynamics, self.reason)
 
 
 @dataclass(frozen=True)
@@ -57,23 +89,34 @@ class DefaultMethod:
     dynamics: DynamicsMode
     reason: str
     evidence: str
+    beyond_range: BeyondRange | None = None
 
     @property
     def method(self) -> Method:
         return Method(self.fit, self.dynamics)
 
     def __post_init__(self):
-        if self.fit not in DEFAULT_FIT_MODES:
-            raise DefaultMethodsError(f"fit {self.fit!r} is not a default fit; expected one of {list(DEFAULT_FIT_MODES)} "
-                                      "(fit 'none' is an explicit option only)")
-        if self.dynamics not in DYNAMICS_MODES:
-            raise DefaultMethodsError(f"dynamics {self.dynamics!r}, expected one of {list(DYNAMICS_MODES)}")
-        for key in ("reason", "evidence"):
-            if not isinstance(getattr(self, key), str) or not getattr(self, key).strip():
-                raise DefaultMethodsError(f"{key} must be a non-empty string")
+        _check_default(self.fit, self.dynamics, self.reason)
+        if not isinstance(self.evidence, str) or not self.evidence.strip():
+            raise DefaultMethodsError("evidence must be a non-empty string")
+        if self.beyond_range is not None and self.method != Method("canonical", "learned"):
+            raise DefaultMethodsError("beyond_range goes only with fit 'canonical' and dynamics 'learned' (the default with a body range)")
 
-    def as_dict(self) -> dict[str, str]:
-        return asdict(self)
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        if self.beyond_range is None:
+            del d["beyond_range"]
+        return d
+
+
+def _check_default(fit: str, dynamics: str, reason: str) -> None:
+    if fit not in DEFAULT_FIT_MODES:
+        raise DefaultMethodsError(f"fit {fit!r} is not a default fit; expected one of {list(DEFAULT_FIT_MODES)} "
+                                  "(fit 'none' is an explicit option only)")
+    if dynamics not in DYNAMICS_MODES:
+        raise DefaultMethodsError(f"dynamics {dynamics!r}, expected one of {list(DYNAMICS_MODES)}")
+    if not isinstance(reason, str) or not reason.strip():
+        raise DefaultMethodsError("reason must be a non-empty string")
 
 
 class DefaultMethods:
@@ -105,8 +148,16 @@ class DefaultMethods:
             fail(f"no default method for garments {missing}: every catalog garment needs one")
         entries = {}
         for gid, entry in garments.items():
-            if not isinstance(entry, dict) or set(entry) != _ENTRY_KEYS:
-                fail(f"garments.{gid}: expected exactly the keys {sorted(_ENTRY_KEYS)}")
+            if not isinstance(entry, dict) or not _ENTRY_KEYS <= set(entry) <= _ENTRY_KEYS | _OPTIONAL_KEYS:
+                fail(f"garments.{gid}: expected the keys {sorted(_ENTRY_KEYS)} (and optionally {sorted(_OPTIONAL_KEYS)})")
+            entry = dict(entry)
+            if "beyond_range" in entry:
+                if not isinstance(entry["beyond_range"], dict) or set(entry["beyond_range"]) != _BEYOND_KEYS:
+                    fail(f"garments.{gid}.beyond_range: expected exactly the keys {sorted(_BEYOND_KEYS)}")
+                try:
+                    entry["beyond_range"] = BeyondRange(**entry["beyond_range"])
+                except DefaultMethodsError as exc:
+                    fail(f"garments.{gid}.beyond_range: {exc}")
             try:
                 entries[gid] = DefaultMethod(**entry)
             except DefaultMethodsError as exc:
@@ -135,7 +186,7 @@ class DefaultMethods:
     def __contains__(self, garment_id: object) -> bool:
         return garment_id in self._entries
 
-    def as_dict(self) -> dict[str, dict[str, str]]:
+    def as_dict(self) -> dict[str, dict]:
         """garment id -> entry, sorted by id (the file's ``garments`` object)."""
         return {gid: e.as_dict() for gid, e in self._entries.items()}
 
@@ -154,8 +205,9 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
 
     covers : garment id -> whether its learned canonical model serves this body
              (``inference.canonical.CanonicalModels.covers``): where it does not, a default of fit
-             'canonical' with dynamics 'learned' runs dynamics 'none' (the static canonical form)
-             unless the request names the dynamics
+             'canonical' with dynamics 'learned' runs the entry's ``beyond_range`` method (without
+             one, dynamics 'none': the static canonical form), unless the request names the fit
+             or the dynamics
     returns : one ``Method`` per garment id, in order
     """
     if fit is not None and fit not in FIT_MODES:
@@ -168,6 +220,7 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
     for g in garment_ids:
         m = Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
         if dynamics is None and m == Method("canonical", "learned") and covers is not None and not covers(g):
-            m = Method("canonical", "none")  # beyond the learned model's body range: the static canonical form
+            beyond = defaults.get(g).beyond_range if fit is None else None
+            m = beyond.method if beyond is not None else Method("canonical", "none")  # beyond the learned model's body range
         out.append(m)
     return out

@@ -50,12 +50,13 @@ class DrapeOptions(BaseModel):
         "none", description="glb: 'meshopt' encodes the buffers with EXT_meshopt_compression (decoded by three.js with "
         "MeshoptDecoder, model-viewer, Babylon.js; not by Blender 3.x): about half the size (README example: 5.3 to 2.8 MB), "
         "'none' (default) plays in every glTF reader")
-    fit: Literal["canonical", "learned", "retarget", "none"] | None = Field(
+    fit: Literal["canonical", "learned-canonical", "learned", "retarget", "none"] | None = Field(
         None,
         description="garment fit to the body shape, for every garment of the request: 'canonical' = the garment in the "
         "canonical space of thesis ch. 6, shaped and skinned by the diffused body model (skinning weights and shape offsets "
-        "read at the garment's own points; collisions: the final exact stage alone); 'learned' = the .mhclo retarget + "
-        "the fit regressor R_G (ONNX, trained self-supervised on the SNUG physics energies); 'retarget' = the .mhclo "
+        "read at the garment's own points; collisions: the final exact stage alone); 'learned-canonical' = the garment "
+        "of 'learned', skinned and collision-handled as 'canonical' (weights read at the canonical template); 'learned' = "
+        "the .mhclo retarget + the fit regressor R_G (ONNX, trained self-supervised on the SNUG physics energies); 'retarget' = the .mhclo "
         "retarget baseline; 'none' = plain LBS of the neutral template. Null or omitted (default): each garment's own "
         "default fit, the method chosen for it on the validation protocol (GET /v1/garments/{id}, default_method)",
     )

@@ -18,6 +18,11 @@ self-supervised with the SNUG losses):
   final exact stage alone (the guard's pushes are for garments in the posed space; a layered
   outfit keeps its push out of the body)
 - fit 'learned'   : retarget_fit(beta) + R_G(beta) (R_G is a residual on the .mhclo retarget)
+- fit 'learned-canonical' : fit 'learned''s garment on the shaped body in its rest pose, posed as
+  fit 'canonical' is: skinned with W~ read at the static canonical X, the strain limit, the final
+  exact stage alone. R_G, trained on sampled bodies, keeps the one-size garment's length where
+  B~s stretches it with a tall or heavy body (edge p99 1.9-2.7 against newton's 1.2-1.5 on such
+  bodies, docs/benchmarks.md); a default beyond a learned canonical model's body range
 - fit 'retarget'  : retarget_fit(beta) (the .mhclo binding on the body + template correction)
 - fit 'none'      : the neutral template, plain LBS
 - dynamics 'learned': + R_L(beta, gamma_1..t) per frame, gamma = motion_descriptor (one ORT call)
@@ -122,6 +127,10 @@ class _Timer:
 
 
 # ---------------------------------------------------------------------- stages
+# The fits that run the ch. 4 fit regressor R_G.
+LEARNED_FITS = ("learned", "learned-canonical")
+
+
 def fit_garment(garment: GarmentAsset, hm08_vertices: np.ndarray, mode: FitMode, phenotypes: np.ndarray | None = None, learned: LearnedGarment | None = None) -> np.ndarray:
     """Unposed garment on the body shape, T_bar_c + R_G(beta) (eq. 4.2 without R_L).
 
@@ -246,12 +255,12 @@ def drape(
         garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
 
     # the ch. 4 models (fit 'learned', or its wrinkle GRU) and the ch. 6 ones (fit 'canonical')
-    ch4 = [m.fit == "learned" or (m.dynamics == "learned" and m.fit != "canonical") for m in methods]
+    ch4 = [m.fit in LEARNED_FITS or (m.dynamics == "learned" and m.fit != "canonical") for m in methods]
     learned: list[LearnedGarment | None] = [None] * len(garments)
     if any(ch4):
         models = models or default_models()
         with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
-            learned = [models.get(g.id, "/options/fit" if m.fit == "learned" else "/options/dynamics") if c else None
+            learned = [models.get(g.id, "/options/fit" if m.fit in LEARNED_FITS else "/options/dynamics") if c else None
                        for g, m, c in zip(garments, methods, ch4)]
     if any(m.fit == "canonical" for m in methods):
         with timer("models"):  # raises MissingModelError for dynamics 'learned' where a garment ships none
@@ -291,6 +300,8 @@ def drape(
             if m.fit == "canonical":
                 unposed, w = canonical.rest_fit(g, shape.rest_vertices[0])
                 unposed = unposed[None]
+            elif m.fit == "learned-canonical":  # the fit regressor's garment, W~ read at the static canonical X
+                unposed, w = fit_garment(g, hm08, "learned", shape.phenotypes, lg), canonical.weights(g)
             else:
                 unposed, w = fit_garment(g, hm08, m.fit, shape.phenotypes, lg), g.skin_weights
         with timer("dynamics"):
@@ -298,7 +309,7 @@ def drape(
             states.append(h_t)
         with timer("skin"):
             skinned = linear_blend_skinning(unposed_t, w, garment_transforms)
-        if m.fit == "canonical":
+        if m.canonical:
             with timer("strain"):  # eq. 6.7's squeeze under the arms (and a stretched dress or bottom): the strain limit
                 skinned = canonical.strain_limit(g)(skinned[0])[None]
         posed.append(skinned)
@@ -308,7 +319,7 @@ def drape(
     if options.guard:
         margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
         # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights)
-        if len(garments) > 1 or any(m.fit != "canonical" for m in methods):
+        if len(garments) > 1 or not all(m.canonical for m in methods):
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
                 # against the neutral body, the pose its skinning transforms start from).
@@ -330,7 +341,7 @@ def drape(
             skin = None
         # last: no garment vertex inside the body (exact winding number); a lone canonical
         # garment has this stage alone at every level but 'off'
-        if options.guard_exact or all(m.fit == "canonical" for m in methods):
+        if options.guard_exact or all(m.canonical for m in methods):
             with timer("repair"):
                 # an outfit's inner points moved out of the body stay under the outer layers where they can
                 order = LayerOrder(anchors, [g.faces for g in garments]) if len(garments) > 1 and anchors is not None else None

@@ -46,6 +46,7 @@ MODEL_VERSIONS = {
     "canonical_dynamics": "canonical-vae-gru-v2",  # fit 'canonical' + dynamics 'learned': regressor + VAE decoder (canonical.json); v2: + the compression limit (inference/strain.py)
     "dynamics": "none",
     "learned_fit": "snug-fit-v3",  # fit 'learned' (assets/models/<garment>/fit.onnx)
+    "learned_canonical": "snug-fit-v3+diffused-canonical-v2",  # fit 'learned-canonical': fit.onnx's garment posed by the diffused body
     "learned_dynamics": "snug-gru-v6",  # dynamics 'learned' (wrinkle.onnx); v6: the wider output basis (every garment)
     "guard": "plane-push-v4",  # v4: closest-triangle check after the push (options.collisions 'check' and 'exact')
     "guard_plain": "plane-push-v3",  # options.collisions 'push': the push alone (v3: farther limbs)
@@ -59,11 +60,12 @@ def used_model_versions(options, methods: Mapping[str, Method]) -> dict[str, str
     """The versions of the models a request ran (its output metadata): body, arms, guard and
     repair from its options; fit and dynamics per garment id from ``methods``, the method each
     garment ran (``MODEL_VERSIONS``; 'none' for a stage that did not run)."""
-    fit = {"canonical": MODEL_VERSIONS["canonical"], "learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}
+    fit = {"canonical": MODEL_VERSIONS["canonical"], "learned-canonical": MODEL_VERSIONS["learned_canonical"],
+           "learned": MODEL_VERSIONS["learned_fit"], "retarget": MODEL_VERSIONS["fit"], "none": "none"}
     dynamics = {"learned": MODEL_VERSIONS["learned_dynamics"], "none": "none"}
     # as inference.pipeline.drape: a lone canonical garment skips the guard's pushes and always
     # has the final exact stage
-    canonical = all(m.fit == "canonical" for m in methods.values())
+    canonical = all(m.canonical for m in methods.values())
     guard = len(methods) > 1 or not canonical
     return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none",
             "fit": {gid: fit[m.fit] for gid, m in methods.items()},
@@ -274,11 +276,11 @@ class Runtime:
         files = ["body/body.npz", "body/hm08_helpers.npz"]
         if isinstance(p.request.motion, ClipMotion):
             files.append(f"motions/{p.request.motion.clip}.npz")
-        if any(g.method.fit == "canonical" for g in result.garments):
+        if any(g.method.canonical for g in result.garments):
             files.append("body/diffused.npz")
         for g in result.garments:
             files.append(f"garments/{g.asset.id}/garment.npz")
-            if g.method.fit == "learned":
+            if g.method.fit in ("learned", "learned-canonical"):
                 files.append(f"models/{g.asset.id}/{self.models.get(g.asset.id).meta['fit']['file']}")
             if g.method.dynamics == "learned" and g.method.fit == "canonical":
                 meta = self.canonical.learned(g.asset.id).meta

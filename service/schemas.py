@@ -119,13 +119,24 @@ DRAPE_EXAMPLE = {
 
 
 # ------------------------------------------------------------------ responses
+class BeyondRangeResponse(BaseModel):
+    """The default's method on bodies beyond its learned canonical model's body range."""
+
+    fit: Literal["canonical", "learned-canonical", "learned", "retarget"]
+    dynamics: Literal["learned", "none"]
+    reason: str = Field(description="why, in one sentence")
+
+
 class DefaultMethodResponse(BaseModel):
     """What a drape runs for this garment when its options name no fit or dynamics."""
 
-    fit: Literal["canonical", "learned", "retarget"]
+    fit: Literal["canonical", "learned-canonical", "learned", "retarget"]
     dynamics: Literal["learned", "none"]
     reason: str = Field(description="why this method is the garment's default, in one sentence")
     evidence: str = Field(description="where the measurements behind it are")
+    beyond_range: BeyondRangeResponse | None = Field(
+        None, description="fit 'canonical' with dynamics 'learned' runs on bodies within a body range of the ones its model was "
+        "trained on (model_versions names what ran); beyond it, this method (absent: fit 'canonical', dynamics 'none')")
 
 
 class GarmentSummary(BaseModel):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from inference.body import ASSETS_DIR, NEUTRAL_PHENOTYPES, BodyModel
-from inference.defaults import (DEFAULTS_FILE, DefaultMethod, DefaultMethods, DefaultMethodsError, Method, default_methods,
+from inference.defaults import (DEFAULTS_FILE, BeyondRange, DefaultMethod, DefaultMethods, DefaultMethodsError, Method, default_methods,
                                 resolve_methods)
 from inference.errors import InputValueError
 from inference.garment import GarmentCatalog, catalog_ids
@@ -41,7 +41,9 @@ def test_shipped_file_names_every_catalog_garment_with_a_valid_method():
     assert table.as_dict() == _shipped()["garments"]  # the file, entry for entry
     for gid in catalog_ids():
         entry = table.get(gid)
-        assert entry.fit in ("canonical", "learned", "retarget") and entry.dynamics in ("learned", "none") and entry.reason and entry.evidence
+        assert entry.fit in ("canonical", "learned-canonical", "learned", "retarget") and entry.dynamics in ("learned", "none") and entry.reason and entry.evidence
+        if entry.beyond_range is not None:  # only beside a default with a body range
+            assert entry.method == Method("canonical", "learned") and entry.beyond_range.reason
 
 
 @pytest.mark.parametrize("change, message", [
@@ -51,7 +53,13 @@ def test_shipped_file_names_every_catalog_garment_with_a_valid_method():
     (lambda d: d["garments"]["tshirt"].update(fit="simulated"), "garments.tshirt: fit 'simulated'"),
     (lambda d: d["garments"]["jacket"].update(dynamics="retarget"), "garments.jacket: dynamics 'retarget'"),
     (lambda d: d["garments"]["jacket"].update(reason=""), "garments.jacket: reason must be a non-empty string"),
-    (lambda d: d["garments"]["jacket"].pop("evidence"), "garments.jacket: expected exactly the keys"),
+    (lambda d: d["garments"]["jacket"].pop("evidence"), "garments.jacket: expected the keys"),
+    (lambda d: d["garments"]["jacket"].update(beyond_range={"fit": "canonical", "dynamics": "none", "reason": "r"}),
+     "garments.jacket: beyond_range goes only with fit 'canonical' and dynamics 'learned'"),
+    (lambda d: d["garments"]["tshirt"].update(fit="canonical", dynamics="learned", beyond_range={"fit": "none", "dynamics": "none", "reason": "r"}),
+     "garments.tshirt.beyond_range: fit 'none' is not a default fit"),
+    (lambda d: d["garments"]["tshirt"].update(fit="canonical", dynamics="learned", beyond_range={"fit": "canonical"}),
+     "garments.tshirt.beyond_range: expected exactly the keys"),
     (lambda d: d.update(format=2), "format 2, expected 1"),
 ])
 def test_a_bad_file_fails_loudly(tmp_path, change, message):
@@ -99,6 +107,23 @@ def test_a_body_beyond_the_learned_canonical_models_range_gets_the_static_canoni
     assert resolve_methods(ids, None, "learned", table, covers=far) == [Method("canonical", "learned"), Method("learned", "learned")]
     # the fit named, the dynamics left to the default ('learned'): still beyond the range
     assert resolve_methods(ids, "canonical", None, table, covers=far) == [Method("canonical", "none")] * 2
+
+
+def test_a_body_beyond_the_range_runs_the_entrys_beyond_range_method():
+    beyond = BeyondRange("learned-canonical", "none", "closest on the bodies split")
+    table = DefaultMethods({"trousers": DefaultMethod("canonical", "learned", **ENTRY),
+                            "tshirt": DefaultMethod("canonical", "learned", beyond_range=beyond, **ENTRY)})
+    ids = ["trousers", "tshirt"]
+    far = lambda g: False  # noqa: E731
+    assert resolve_methods(ids, None, None, table, covers=lambda g: True) == [Method("canonical", "learned")] * 2
+    assert resolve_methods(ids, None, None, table, covers=far) == [Method("canonical", "none"), Method("learned-canonical", "none")]
+    # a request that names the fit or the dynamics gets what it names
+    assert resolve_methods(ids, "canonical", None, table, covers=far) == [Method("canonical", "none")] * 2
+    assert resolve_methods(ids, None, "learned", table, covers=far) == [Method("canonical", "learned")] * 2
+    assert table.as_dict()["tshirt"]["beyond_range"] == {"fit": "learned-canonical", "dynamics": "none", "reason": "closest on the bodies split"}
+    assert "beyond_range" not in table.as_dict()["trousers"]
+    round_trip = DefaultMethods.from_json({"format": 1, "garments": table.as_dict()}, ids)
+    assert round_trip.as_dict() == table.as_dict()
 
 
 def test_pipeline_runs_each_garment_its_default(scene):

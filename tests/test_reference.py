@@ -71,7 +71,7 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
 
     row = judge.judge_case(judge.Inputs(body, catalog), SMOKE, "trousers", directory)
     # the trousers ship a learned canonical model too (assets/models/trousers/canonical.json)
-    assert set(row["methods"]) == {"learned", "learned-fit", "retarget", "lbs", "canonical", "canonical-learned"}
+    assert set(row["methods"]) == {"learned", "learned-fit", "retarget", "lbs", "canonical", "canonical-learned", "learned-canonical"}
     for m in row["methods"].values():
         assert np.isfinite(m["error_cm"]) and 0 <= m["error_cm"] < 10
         assert m["collisions_after"]["inside_pct_clean"] == 0.0
@@ -82,7 +82,7 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     ref_real = row["reference"]["realism"]
     assert ref_real["folded_pct"] < 5.0 and 0.5 < ref_real["edge_p1"] <= ref_real["edge_p99"] < 2.0
     fake = {**row, "methods": {k: dict(v) for k, v in row["methods"].items()}}
-    for name in ("learned", "learned-fit", "canonical", "canonical-learned"):
+    for name in ("learned", "learned-fit", "canonical", "canonical-learned", "learned-canonical"):
         fake["methods"][name].update(error_cm=fake["methods"]["retarget"]["error_cm"] + 1.0, realism_failures=[])
     assert judge.select_defaults([fake])["trousers"]["fit"] == "retarget"
     fake["methods"]["lbs"]["error_cm"] = fake["methods"]["retarget"]["error_cm"] = 1.0
@@ -98,6 +98,21 @@ def test_judge_smoke_slice(smoke_reference, monkeypatch):
     assert (chosen["fit"], chosen["dynamics"]) == ("canonical", "none")
     text = judge.markdown({"validation": [row]}, judge.select_defaults([row]), "test")
     assert "| trousers |" in text and "newton" in text
+    # beyond the learned canonical model's range: the closest canonical-space fit without a realism failure
+    ranged = {"trousers": {"fit": "canonical", "dynamics": "learned"}, "jacket": {"fit": "canonical", "dynamics": "none"}}
+    far = {**fake, "body": "far", "methods": {k: dict(v) for k, v in fake["methods"].items()}}
+    near = {**far, "body": "near", "methods": {k: dict(v) for k, v in fake["methods"].items()}}
+    covers = lambda g, b: b == "near"  # noqa: E731
+    far["methods"]["canonical"].update(error_cm=3.0, realism_failures=[])
+    far["methods"]["learned-canonical"].update(error_cm=2.0, realism_failures=[])
+    near["methods"]["learned-canonical"].update(error_cm=9.0)  # covered: not counted
+    beyond = judge.select_beyond_range([far, near, {**far, "garment": "jacket"}], ranged, covers)
+    assert set(beyond) == {"trousers"}  # only a default with a body range gets one
+    assert (beyond["trousers"]["fit"], beyond["trousers"]["dynamics"]) == ("learned-canonical", "none")
+    far["methods"]["learned-canonical"]["realism_failures"] = ["folded_pct"]  # closer, but folds
+    beyond = judge.select_beyond_range([far, near], ranged, covers)["trousers"]
+    assert (beyond["fit"], beyond["dynamics"]) == ("canonical", "none") and "folded_pct" in beyond["reason"]
+    assert judge.select_beyond_range([near], ranged, covers) == {}  # no case beyond the range
 
 
 def test_collision_moves_count_the_moved_vertex_frames_in_mm():

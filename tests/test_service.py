@@ -278,6 +278,8 @@ def _copy_defaults(tmp_path, **changes):
     data = json.loads((REPO_ROOT / "assets" / "models" / "defaults.json").read_text())
     for gid, entry in changes.items():
         data["garments"][gid].update(entry)
+        if (data["garments"][gid]["fit"], data["garments"][gid]["dynamics"]) != ("canonical", "learned"):
+            data["garments"][gid].pop("beyond_range", None)  # only beside a default with a body range
     path = tmp_path / "defaults.json"
     path.write_text(json.dumps(data))
     return path
@@ -402,3 +404,26 @@ def test_the_canonical_fit_is_selectable_and_named_in_the_metadata(client):
     # ... the jacket does not: dynamics 'learned' is a 422 naming the field
     r = client.post("/v1/drape", json={**WALK_TSHIRT, "garments": [{"id": "jacket"}], "options": {"fit": "canonical", "dynamics": "learned"}})
     assert r.status_code == 422 and r.json()["errors"][0]["pointer"] == "/options/dynamics", r.text
+
+
+def test_a_body_beyond_the_learned_models_range_runs_and_names_its_beyond_range_method(client):
+    """GET /v1/garments/tshirt names the method a far body runs; a drape with the options omitted
+    on such a body runs it, says so in model_versions and lists the files it read."""
+    entry = client.get("/v1/garments/tshirt").json()["default_method"]
+    assert (entry["fit"], entry["dynamics"]) == ("canonical", "learned") and entry["beyond_range"]["reason"]
+    beyond = entry["beyond_range"]
+    far = {"gender": 0.0, "age": 1.0, "muscle": 0.0, "weight": 0.0, "height": 1.0, "proportions": 1.0}  # 0.93 from its training bodies
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "body": {"phenotypes": far}, "format": "npz",
+                                       "motion": {"type": "clip", "clip": "walk", "duration_s": 0.2}})
+    assert r.status_code == 200, r.text
+    z = np.load(io.BytesIO(r.content), allow_pickle=False)
+    meta = json.loads(str(z["metadata"]))
+    g = meta["garments"][0]
+    assert (g["fit"], g["dynamics"]) == (beyond["fit"], beyond["dynamics"])
+    if beyond["fit"] == "learned-canonical":
+        assert meta["model_versions"]["fit"]["tshirt"] == MODEL_VERSIONS["learned_canonical"]
+        assert {"body/diffused.npz", "models/tshirt/fit.onnx"} <= set(meta["asset_files_sha256"])
+        assert meta["model_versions"]["guard"] == "none" and meta["model_versions"]["repair"] == MODEL_VERSIONS["repair"]
+    from inference.metrics import inside_mask
+
+    assert not inside_mask(z["garment_0_vertices"], z["body_vertices"], z["body_faces"]).any()

@@ -20,7 +20,7 @@ from all training: ``01_01``), else ``walk``; ``--clip`` takes any bundled clip 
 Methods (``inference.pipeline.DrapeOptions``): default = ``DrapeOptions()`` as the service runs a
 request that names no method (the sheet's title says what each garment ran), learned = fit 'learned' + dynamics 'learned', retarget = fit 'retarget' + dynamics 'none',
 lbs = fit 'none' + dynamics 'none', canonical = fit 'canonical' + dynamics 'none', canonical-learned = fit
-'canonical' + dynamics 'learned'. With dynamics the clip is draped from frame 0 up to the last
+'canonical' + dynamics 'learned', learned-canonical = fit 'learned-canonical' + dynamics 'none'. With dynamics the clip is draped from frame 0 up to the last
 moment shown (the wrinkle GRU's state builds up as at run time); without, each frame is
 independent and only the moments shown are draped (the arms are lifted over the whole clip first,
 as the pipeline would).
@@ -75,6 +75,7 @@ METHODS: dict[str, DrapeOptions] = {
     "lbs": DrapeOptions(fit="none", dynamics="none"),
     "canonical": DrapeOptions(fit="canonical", dynamics="none"),
     "canonical-learned": DrapeOptions(fit="canonical", dynamics="learned"),
+    "learned-canonical": DrapeOptions(fit="learned-canonical", dynamics="none"),
 }
 VIEWS = ("front", "back")
 FIRST_FRACTION, LAST_FRACTION = 0.2, 0.8  # of the clip's frames, where the moments are taken
@@ -138,8 +139,14 @@ def describe(options: DrapeOptions, garment_ids: list[str]) -> str:
     """'fit F, dynamics D' (one method for all garments) or 'id: F/D; ...' per garment; a default
     learned canonical model is noted as running only within its body range (``inference.canonical.covers``)."""
     methods = garment_methods(options, garment_ids)
-    ranged = options.dynamics is None and ("canonical", "learned") in methods
-    note = " (learned canonical: on bodies beyond its range, dynamics none)" if ranged else ""
+    note = ""
+    if options.dynamics is None and ("canonical", "learned") in methods:
+        from inference.defaults import default_methods
+
+        table = default_methods()
+        beyond = sorted({(b.fit, b.dynamics) if (b := table.get(g).beyond_range) is not None and options.fit is None else ("canonical", "none")
+                         for g, m in zip(garment_ids, methods) if m == ("canonical", "learned")})
+        note = " (learned canonical: on bodies beyond its range, " + ", ".join(f"fit {f}, dynamics {d}" for f, d in beyond) + ")"
     if len(set(methods)) == 1:
         return f"fit {methods[0][0]}, dynamics {methods[0][1]}{note}"
     return "; ".join(f"{g}: {f}/{d}" for g, (f, d) in zip(garment_ids, methods)) + note

@@ -13,6 +13,8 @@ For each case of a protocol split (``training.protocol``) and each catalog garme
                            eq. 6.7-6.8, ``inference.canonical``), no dynamics
                  canonical-learned : X_t = D(R(beta, gamma)) through it (ch. 6.4), where the
                            garment ships the model (``canonical.json``)
+                 learned-canonical : learned-fit's garment posed as 'canonical' is (W~ at the
+                           static X, the strain limit, the final stage alone)
                  retarget : the .mhclo retarget fit, no dynamics
                  lbs      : the neutral template, plain LBS
                the learned dynamics run from the clip's frame 0; every method is compared on the
@@ -39,6 +41,11 @@ the baselines included, misses the reference's edge percentiles, since a simulat
 compresses edges that a skinned mesh keeps at rest length; a margin the baseline itself fails
 cannot tell a crumpled sleeve from a clean one, the second anchor can). Both lists are reported.
 
+Beyond the body range (``select_beyond_range``, the ``bodies`` split): a default of fit 'canonical'
+with dynamics 'learned' gets a ``beyond_range`` method, run on bodies its learned model does not
+cover: the candidate of ``BEYOND_CANDIDATES`` with the lowest mean error over the split's cases
+beyond the range and no realism failure on them (the static canonical form when none has).
+
 CLI:
     python -m training.judge --split validation --write-defaults assets/models/defaults.json
     python -m training.judge --split validation --split test --write docs/evaluation.md
@@ -57,6 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel
+from inference.canonical import CanonicalModels
 from inference.defaults import ASSETS_DIR, DEFAULTS_FILE
 from inference.garment import GarmentCatalog
 from inference.learned import MissingModelError
@@ -74,6 +82,7 @@ METHODS: dict[str, DrapeOptions] = {
     "lbs": DrapeOptions(fit="none", dynamics="none", lift_arms=False),
     "canonical": DrapeOptions(fit="canonical", dynamics="none", lift_arms=False),
     "canonical-learned": DrapeOptions(fit="canonical", dynamics="learned", lift_arms=False),
+    "learned-canonical": DrapeOptions(fit="learned-canonical", dynamics="none", lift_arms=False),
 }
 REFERENCE = ReferenceSettings()
 # A companion simulation "slid" where its carried half is more than MOVED_M from the reference's
@@ -301,8 +310,11 @@ def judge_case(inputs: Inputs, case: Case, garment: str, reference_dir: Path = R
     return row
 
 
-CANDIDATES = ("learned", "learned-fit", "canonical", "canonical-learned")
+CANDIDATES = ("learned", "learned-fit", "canonical", "canonical-learned", "learned-canonical")
 BASELINES = ("retarget", "lbs")
+# Beyond a learned canonical model's body range (``inference.canonical.CanonicalModels.covers``):
+# the fits posed by the diffused body, which need no guard push (thesis ch. 6's pipeline).
+BEYOND_CANDIDATES = ("canonical", "learned-canonical")
 
 
 def select_defaults(rows: list[dict], required_cases: int | None = None, evidence: str = "docs/evaluation.md") -> dict[str, dict]:
@@ -343,6 +355,36 @@ def select_defaults(rows: list[dict], required_cases: int | None = None, evidenc
             out[garment] = {"fit": "retarget", "dynamics": "none",
                             "reason": f"baseline: on validation (mean over {cases}; {errors}) " + "; ".join(verdicts)}
         out[garment]["evidence"] = evidence
+    return out
+
+
+def select_beyond_range(rows: list[dict], defaults: dict[str, dict], covers) -> dict[str, dict]:
+    """Per garment whose entry in ``defaults`` is fit 'canonical' with dynamics 'learned', its
+    ``beyond_range`` method (module docstring) from the ``bodies`` split's ``rows``; ``covers``
+    (garment id, case body name) -> whether the learned model serves that body. Garments with no
+    case beyond the range get none."""
+    out = {}
+    for garment, entry in sorted(defaults.items()):
+        if (entry["fit"], entry["dynamics"]) != ("canonical", "learned"):
+            continue
+        mine = [r for r in rows if r["garment"] == garment and not covers(garment, r["body"]) and r["reference"].get("dressed", True)]
+        if not mine:
+            continue
+        names = [m for m in BEYOND_CANDIDATES if all(m in r["methods"] for r in mine)]
+        err = {m: float(np.mean([r["methods"][m]["error_cm"] for r in mine])) for m in names}
+        fails = {m: sorted({f for r in mine for f in r["methods"][m]["realism_failures"]}) for m in names}
+        ok = [m for m in sorted(err, key=err.get) if not fails[m]]
+        choice = ok[0] if ok else "canonical"
+        cases = ", ".join(r["case"] for r in mine)
+        errors = ", ".join(f"{m} {e:.2f} cm" for m, e in err.items())
+        failed = "; ".join(f"{m} worse on realism ({', '.join(f)})" for m, f in fails.items() if f)
+        if len(err) == 1:
+            why = "the only candidate (the garment ships no fit regressor)"
+        else:
+            why = "closest to the newton reference and not worse on realism" if ok else "no candidate without a realism failure, so the static form"
+        out[garment] = {"fit": METHODS[choice].fit, "dynamics": METHODS[choice].dynamics,
+                        "reason": f"{choice}: {why} on the bodies beyond the learned model's range (mean over {cases}; {errors})"
+                                  + (f"; {failed}" if failed else "")}
     return out
 
 
@@ -451,6 +493,11 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
     if defaults:
         lines += ["## Defaults (assets/models/defaults.json, chosen on validation)", "", "| garment | fit | dynamics | reason |", "|---|---|---|---|"]
         lines += [f"| {g} | {d['fit']} | {d['dynamics']} | {d['reason']} |" for g, d in sorted(defaults.items())]
+        beyond = {g: d["beyond_range"] for g, d in defaults.items() if "beyond_range" in d}
+        if beyond:
+            lines += ["", "Beyond the learned canonical model's body range (`beyond_range`, chosen on the bodies split):", "",
+                      "| garment | fit | dynamics | reason |", "|---|---|---|---|"]
+            lines += [f"| {g} | {d['fit']} | {d['dynamics']} | {d['reason']} |" for g, d in sorted(beyond.items())]
         lines.append("")
     return "\n".join(lines)
 
@@ -560,6 +607,15 @@ def main(argv: list[str] | None = None) -> None:
         current = json.loads(shipped.read_text())["garments"] if shipped.exists() else {}
         merged = merge_hand_set(defaults, current)  # hand-set entries kept; garments not judged here keep theirs
         defaults = {g: merged[g] for g in defaults}
+        if results.get("bodies"):
+            canonical, catalog = CanonicalModels(), inputs.catalog
+            beyond = select_beyond_range(results["bodies"], defaults,
+                                         lambda g, b: canonical.covers(catalog.get(g), BODIES[b]))
+            for g, entry in defaults.items():
+                if not entry["reason"].startswith(HAND_SET):  # a hand-set entry keeps its own
+                    entry.pop("beyond_range", None)
+                    if g in beyond:
+                        entry["beyond_range"] = beyond[g]
         if args.write_defaults:
             args.write_defaults.write_text(json.dumps({"format": 1, "garments": dict(sorted(merged.items()))}, indent=1) + "\n")
             log.info("wrote %s", args.write_defaults)
