@@ -144,9 +144,13 @@ def describe(options: DrapeOptions, garment_ids: list[str]) -> str:
         from inference.defaults import default_methods
 
         table = default_methods()
-        beyond = sorted({(b.fit, b.dynamics) if (b := table.get(g).beyond_range) is not None and options.fit is None else ("canonical", "none")
-                         for g, m in zip(garment_ids, methods) if m == ("canonical", "learned")})
-        note = " (learned canonical: on bodies beyond its range, " + ", ".join(f"fit {f}, dynamics {d}" for f, d in beyond) + ")"
+        beyond = {g: (b.fit, b.dynamics) if (b := table.get(g).beyond_range) is not None and options.fit is None else ("canonical", "none")
+                  for g, m in zip(garment_ids, methods) if m == ("canonical", "learned")}
+        if len(set(beyond.values())) == 1:
+            f, d = next(iter(beyond.values()))
+            note = f" (learned canonical: on bodies beyond its range, fit {f}, dynamics {d})"
+        else:
+            note = " (learned canonical: on bodies beyond its range, " + "; ".join(f"{g}: {f}/{d}" for g, (f, d) in beyond.items()) + ")"
     if len(set(methods)) == 1:
         return f"fit {methods[0][0]}, dynamics {methods[0][1]}{note}"
     return "; ".join(f"{g}: {f}/{d}" for g, (f, d) in zip(garment_ids, methods)) + note
