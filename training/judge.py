@@ -454,7 +454,7 @@ def markdown(results: dict[str, list[dict]], defaults: dict | None, command: str
         "(CMU clips; reported only, never used to choose); bodies = "
         f"{'; '.join(c.name for c in SPLITS['bodies'])} (the validation clip on bodies no model trains on: where "
         "a learned canonical model's body range, `inference.canonical.BODY_RANGE`, is chosen). "
-        "Bodies: neutral, heavy [1,1,1,1,1,1], light-tall [0,.77,0,1,1,0], val-close [.6,.85,.4,.6,.6,.4], val-near [1,.85,1,.3,.6,.3], val-far [0,1,0,0,1,1] "
+        "Bodies: neutral, heavy [1,1,1,1,1,1], light-tall [0,.77,0,1,1,0], val-close [.6,.85,.4,.6,.6,.4], val-near [1,.85,1,.3,.6,.3], val-far [0,1,0,0,1,1], test-short [1,.95,.3,.9,.1,.6] "
         "(phenotypes: gender, age, muscle, weight, height, proportions).",
         "",
     ]

@@ -8,7 +8,9 @@
 
 Each case simulates a window of ``frames`` frames from ``start`` (30 fps frames of the clip
 retargeted to the body, arms lifted as the service does), on a body of ``BODIES``: the neutral
-adult and two extreme adults (the heaviest corner, and a light, tall, long-limbed one).
+adult and two extreme adults (the heaviest corner, and a light, tall, long-limbed one); the test
+split adds a short, heavy, older man on 01_01 (``test-short``, beyond every learned model's body
+range, added in session 34 after the beyond-range defaults were chosen on ``bodies``).
 Windows are fixed in advance (start past each clip's first second, no other reason).
 
 Units: frames at 30 fps; phenotypes in [0, 1] (anny order: gender, age, muscle, weight, height,
@@ -43,6 +45,9 @@ BODIES: dict[str, np.ndarray] = {
     "val-close": np.array([0.6, 0.85, 0.4, 0.6, 0.6, 0.4], np.float32),
     "val-near": np.array([1.0, 0.85, 1.0, 0.3, 0.6, 0.3], np.float32),
     "val-far": np.array([0.0, 1.0, 0.0, 0.0, 1.0, 1.0], np.float32),
+    # a test-only body beyond every learned model's range (0.80 from the nearest training body,
+    # the neutral one): a short, heavy, older man, where a one-size garment hangs long
+    "test-short": np.array([1.0, 0.95, 0.3, 0.9, 0.1, 0.6], np.float32),
 }
 
 
@@ -66,7 +71,8 @@ class Case:
 
 SPLITS: dict[str, tuple[Case, ...]] = {
     "validation": (Case("02_02", "neutral", 30, 20), Case("02_02", "heavy", 30, 20)),
-    "test": (Case("01_01", "neutral", 120, 20), Case("01_01", "heavy", 120, 20), Case("02_07", "light-tall", 60, 20)),
+    "test": (Case("01_01", "neutral", 120, 20), Case("01_01", "heavy", 120, 20), Case("02_07", "light-tall", 60, 20),
+             Case("01_01", "test-short", 120, 20)),
     # the validation clip on bodies no model trains on: how far from its training bodies a learned
     # model holds (``inference.defaults``' body range is chosen here, never on the test split)
     "bodies": (Case("02_02", "val-close", 30, 20), Case("02_02", "val-near", 30, 20), Case("02_02", "val-far", 30, 20)),
