@@ -46,7 +46,7 @@ class DrapeJob:
         """Jobs with equal keys may share one pipeline call; None: run alone."""
         if any(m.dynamics not in MERGEABLE_DYNAMICS for m in self.methods):
             return None
-        return (self.shape.phenotypes.tobytes(), tuple((a.id, m.fit, m.dynamics) for a, m in zip(self.assets, self.methods)),
+        return (self.shape.phenotypes.tobytes(), tuple((a.id, m) for a, m in zip(self.assets, self.methods)),
                 self.options.pipeline_key())
 
 

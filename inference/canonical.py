@@ -58,6 +58,11 @@ MODEL_FILE = "canonical.json"  # in assets/models/<garment>/, next to the ONNX f
 # against 2.32). Each range is the midpoint between the last distance that holds and the next.
 BODY_RANGE = 0.1
 BODY_RANGE_BY_CATEGORY = {"top": 0.35}
+# Within BLEND_BAND of the range (as a share of it) on either side, the default blends from the
+# learned model into the beyond-range method (``beyond_weight``, a smoothstep of the distance), so
+# that a body changed a little at the edge does not change its garment at once: on the walk, one
+# step of 0.02 across the T-shirt's range moved its vertices by 1.8 cm on average, 10 cm at most.
+BLEND_BAND = 0.25
 
 # Central-difference step of the SDF gradient, metres (well inside the fine grid's 15 mm cells).
 GRADIENT_STEP_M = 0.002
@@ -245,6 +250,18 @@ class CanonicalModels:
             return True
         p = np.asarray(phenotypes, np.float32).reshape(1, 6)
         return bool(np.linalg.norm(train - p, axis=1).min() <= BODY_RANGE_BY_CATEGORY.get(garment.category, BODY_RANGE))
+
+    def beyond_weight(self, garment: GarmentAsset, phenotypes: np.ndarray) -> float:
+        """How far beyond the garment's body range a body is (``covers``): 0 within (1 -
+        BLEND_BAND) of the range, 1 beyond (1 + BLEND_BAND) of it, a smoothstep between (0.5 at
+        the range); 0 for a model with no record of its bodies."""
+        train = self.train_phenotypes(garment.id)
+        if train is None:
+            return 0.0
+        r = BODY_RANGE_BY_CATEGORY.get(garment.category, BODY_RANGE)
+        d = float(np.linalg.norm(train - np.asarray(phenotypes, np.float32).reshape(1, 6), axis=1).min())
+        t = min(max((d - r * (1.0 - BLEND_BAND)) / (2.0 * r * BLEND_BAND), 0.0), 1.0)
+        return t * t * (3.0 - 2.0 * t)
 
     def learned(self, garment_id: str, field: str = "/options/dynamics") -> CanonicalGarment:
         """The garment's learned canonical model; ``MissingModelError`` (naming ``field``) if none."""

@@ -58,11 +58,25 @@ class Method:
 
     fit: FitMode
     dynamics: DynamicsMode
+    # Near the edge of a learned canonical model's body range: the beyond-range method blended in,
+    # posed = (1 - beyond_weight) * own + beyond_weight * beyond, before the collision stages.
+    beyond: Method | None = None
+    beyond_weight: float = 0.0
+
+    @property
+    def own(self) -> Method:
+        """The method without its blend."""
+        return Method(self.fit, self.dynamics)
+
+    @property
+    def fits(self) -> tuple[str, ...]:
+        """The fits this method runs (two when blended)."""
+        return (self.fit,) if self.beyond is None else (self.fit, self.beyond.fit)
 
     @property
     def canonical(self) -> bool:
-        """Posed by the diffused body (``CANONICAL_FITS``)."""
-        return self.fit in CANONICAL_FITS
+        """Posed by the diffused body (``CANONICAL_FITS``), blend included."""
+        return all(f in CANONICAL_FITS for f in self.fits)
 
 
 @dataclass(frozen=True)
@@ -198,7 +212,8 @@ def default_methods(assets_dir: Path | str = ASSETS_DIR) -> DefaultMethods:
 
 
 def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics: str | None = None,
-                    defaults: DefaultMethods | None = None, covers: Callable[[str], bool] | None = None) -> list[Method]:
+                    defaults: DefaultMethods | None = None, covers: Callable[[str], bool] | None = None,
+                    beyond: Callable[[str], float] | None = None) -> list[Method]:
     """The method each garment runs: ``fit`` / ``dynamics`` where given (the same for every
     garment), else the garment's own default from ``defaults`` (default: ``default_methods()``,
     read only when an option is None).
@@ -208,6 +223,9 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
              'canonical' with dynamics 'learned' runs the entry's ``beyond_range`` method (without
              one, dynamics 'none': the static canonical form), unless the request names the fit
              or the dynamics
+    beyond : garment id -> how far beyond that range this body is, 0 (inside) .. 1 (beyond)
+             (``CanonicalModels.beyond_weight``; in place of ``covers``): between the two, the
+             default blends into the beyond-range method (``Method.beyond_weight``)
     returns : one ``Method`` per garment id, in order
     """
     if fit is not None and fit not in FIT_MODES:
@@ -219,8 +237,13 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
     out = []
     for g in garment_ids:
         m = Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
-        if dynamics is None and m == Method("canonical", "learned") and covers is not None and not covers(g):
-            beyond = defaults.get(g).beyond_range if fit is None else None
-            m = beyond.method if beyond is not None else Method("canonical", "none")  # beyond the learned model's body range
+        if dynamics is None and m == Method("canonical", "learned") and (covers is not None or beyond is not None):
+            w = float(beyond(g)) if beyond is not None else 0.0 if covers(g) else 1.0
+            entry = defaults.get(g).beyond_range if fit is None else None
+            other = entry.method if entry is not None else Method("canonical", "none")  # beyond the learned model's body range
+            if w >= 1.0:
+                m = other
+            elif w > 0.0:
+                m = Method("canonical", "learned", beyond=other, beyond_weight=round(w, 4))
         out.append(m)
     return out

@@ -12,7 +12,8 @@ self-supervised with the SNUG losses):
   ``inference.canonical``); with dynamics 'none' X is the static template, with 'learned'
   X_t = D(R(beta, gamma_1..t)) (ch. 6.4: the regressor into the canonical VAE's latent, and its
   decoder; as a default only on bodies within the learned model's body range of its training
-  bodies, ``CanonicalModels.covers``, else the static X). Then the strain limit
+  bodies, ``CanonicalModels.covers``, else the default's ``beyond_range`` method, or the static X;
+  near the range's edge the two are blended, ``CanonicalModels.beyond_weight``). Then the strain limit
   (``inference.strain``: no edge much below 0.8 of its rest length, where eq. 6.7 squeezes the
   cloth under the arms; a dress's or bottom's none much above 2.0 / 1.9 of it). Collisions: the
   final exact stage alone (the guard's pushes are for garments in the posed space; a layered
@@ -231,9 +232,9 @@ def drape(
     # which stays a uniform option: it changes the skinning transforms and the guard's rest body)
     canonical = canonical or default_canonical()  # (loads nothing until a garment runs fit 'canonical')
     methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults,
-                              covers=lambda i: canonical.covers(next(g for g in garments if g.id == i), shape.phenotypes))
+                              beyond=lambda i: canonical.beyond_weight(next(g for g in garments if g.id == i), shape.phenotypes))
     hm08 = None
-    if any(m.fit != "canonical" for m in methods):  # the MakeHuman bindings of the other fits (~0.7 ms)
+    if any(f != "canonical" for m in methods for f in m.fits):  # the MakeHuman bindings of the other fits (~0.7 ms)
         with timer("shape"):
             hm08 = body.hm08_vertices(shape)
     if options.lift_arms:
@@ -255,12 +256,12 @@ def drape(
         garment_transforms = neutral_relative_transforms(transforms, shape, neutral)
 
     # the ch. 4 models (fit 'learned', or its wrinkle GRU) and the ch. 6 ones (fit 'canonical')
-    ch4 = [m.fit in LEARNED_FITS or (m.dynamics == "learned" and m.fit != "canonical") for m in methods]
+    ch4 = [any(f in LEARNED_FITS for f in m.fits) or (m.dynamics == "learned" and m.fit != "canonical") for m in methods]
     learned: list[LearnedGarment | None] = [None] * len(garments)
     if any(ch4):
         models = models or default_models()
         with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
-            learned = [models.get(g.id, "/options/fit" if m.fit in LEARNED_FITS else "/options/dynamics") if c else None
+            learned = [models.get(g.id, "/options/fit" if any(f in LEARNED_FITS for f in m.fits) else "/options/dynamics") if c else None
                        for g, m, c in zip(garments, methods, ch4)]
     if any(m.fit == "canonical" for m in methods):
         with timer("models"):  # raises MissingModelError for dynamics 'learned' where a garment ships none
@@ -276,26 +277,25 @@ def drape(
             gamma = np.concatenate([motion_descriptor(motion.rotations[None, a:b], motion.translation[None, a:b], motion.fps)
                                     for a, b in zip(bounds[:-1], bounds[1:])], axis=1)
 
-    unposed_fits, posed, states, weights = [], [], [], []
-    for i, (g, m, lg) in enumerate(zip(garments, methods, learned)):
-        h0 = wrinkle_state[i] if wrinkle_state is not None else None
+    def run(g: GarmentAsset, m: Method, lg: LearnedGarment | None, h0: np.ndarray | None):
+        """One garment's posed frames (1, T, V, 3) by one method, its rest fit (1, V, 3) and
+        skinning weights (V, J) for the guard and the layer stage (None where unused), and the
+        GRU state after the last frame."""
         if m.fit == "canonical" and m.dynamics == "learned":
             d = canonical.diffused
             with timer("dynamics"):  # X_t = D(R(beta, gamma_1..t))
                 X, h_t = canonical.frames(g, shape.phenotypes, gamma, segments, h0, push=False)
-                states.append(h_t)
             with timer("skin"):  # pushed out of the canonical body, then eq. 6.7 with W~ and B~s at every frame's own points
                 X, fields = push_fields(d, X, margin(g))
                 offsets = d.offsets(shape.rest_vertices[0])
                 frames = d.pose(X, offsets, transforms[0], fields)
             with timer("strain"):  # the decoded garment's edges back within its category's strain limit (inference.strain)
-                posed.append(canonical.strain_limit(g)(frames)[None])
-            if len(garments) > 1:  # the guard and the layer stage plan on the sequence's mean canonical form
-                with timer("fit"):
-                    Xm = X.mean(0)
-                    unposed_fits.append(d.deshaped_to_shaped(Xm, offsets)[None])
-                    weights.append(d.weights(Xm))
-            continue
+                out = canonical.strain_limit(g)(frames)[None]
+            if len(garments) == 1:
+                return out, None, None, h_t
+            with timer("fit"):  # the guard and the layer stage plan on the sequence's mean canonical form
+                Xm = X.mean(0)
+                return out, d.deshaped_to_shaped(Xm, offsets)[None], d.weights(Xm), h_t
         with timer("fit"):
             if m.fit == "canonical":
                 unposed, w = canonical.rest_fit(g, shape.rest_vertices[0])
@@ -306,15 +306,26 @@ def drape(
                 unposed, w = fit_garment(g, hm08, m.fit, shape.phenotypes, lg), g.skin_weights
         with timer("dynamics"):
             unposed_t, h_t = garment_dynamics(unposed, motion.num_frames, m.dynamics, shape.phenotypes, gamma, lg, segments, h0)
-            states.append(h_t)
         with timer("skin"):
             skinned = linear_blend_skinning(unposed_t, w, garment_transforms)
         if m.canonical:
             with timer("strain"):  # eq. 6.7's squeeze under the arms (and a stretched dress or bottom): the strain limit
                 skinned = canonical.strain_limit(g)(skinned[0])[None]
-        posed.append(skinned)
-        unposed_fits.append(unposed)
-        weights.append(w)
+        return skinned, unposed, w, h_t
+
+    unposed_fits, posed, states, weights = [], [], [], []
+    for i, (g, m, lg) in enumerate(zip(garments, methods, learned)):
+        h0 = wrinkle_state[i] if wrinkle_state is not None else None
+        out, unposed, w, h_t = run(g, m.own, lg, h0)
+        if m.beyond is not None:  # near the edge of the learned model's body range: blended into the beyond-range method
+            other = run(g, m.beyond, lg, None)[0]
+            with timer("blend"):
+                out = (1.0 - m.beyond_weight) * out + m.beyond_weight * other
+        posed.append(out)
+        states.append(h_t)
+        if unposed is not None:
+            unposed_fits.append(unposed)
+            weights.append(w)
 
     if options.guard:
         margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
@@ -399,7 +410,7 @@ def drape_chunks(
         raise InputShapeError("chunk_frames", ">= 1", (chunk_frames,))
     canonical = canonical or default_canonical()
     methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults,
-                              covers=lambda i: canonical.covers(next(g for g in garments if g.id == i), shape.phenotypes))
+                              beyond=lambda i: canonical.beyond_weight(next(g for g in garments if g.id == i), shape.phenotypes))
     if options.lift_arms:
         lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation)
         motion, options = PoseSequence(lifted, motion.translation, motion.fps), options.replace(lift_arms=False)

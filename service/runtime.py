@@ -67,10 +67,17 @@ def used_model_versions(options, methods: Mapping[str, Method]) -> dict[str, str
     # has the final exact stage
     canonical = all(m.canonical for m in methods.values())
     guard = len(methods) > 1 or not canonical
+    def dyn(m):
+        return MODEL_VERSIONS["canonical_dynamics"] if (m.fit, m.dynamics) == ("canonical", "learned") else dynamics[m.dynamics]
+
+    def blend(m, name):  # a method blended into its beyond-range one: both, with their weights
+        if m.beyond is None:
+            return name(m)
+        return f"{name(m.own)} x{1.0 - m.beyond_weight:.3f} + {name(m.beyond)} x{m.beyond_weight:.3f}"
+
     return {"body": MODEL_VERSIONS["body"], "arms": MODEL_VERSIONS["arms"] if options.lift_arms else "none",
-            "fit": {gid: fit[m.fit] for gid, m in methods.items()},
-            "dynamics": {gid: MODEL_VERSIONS["canonical_dynamics"] if (m.fit, m.dynamics) == ("canonical", "learned") else dynamics[m.dynamics]
-                         for gid, m in methods.items()},
+            "fit": {gid: blend(m, lambda x: fit[x.fit]) for gid, m in methods.items()},
+            "dynamics": {gid: blend(m, dyn) for gid, m in methods.items()},
             "guard": (MODEL_VERSIONS["guard"] if options.guard_check else MODEL_VERSIONS["guard_plain"]) if options.guard and guard else "none",
             "repair": MODEL_VERSIONS["repair"] if options.guard and (options.guard_exact or canonical) else "none",
             "layers": MODEL_VERSIONS["layers"] if options.guard and len(methods) > 1 else "none"}
@@ -220,7 +227,7 @@ class Runtime:
             )
         options = o  # the request's options are the pipeline's (inference.options.DrapeOptions)
         methods = resolve_methods([a.id for a in assets], o.fit, o.dynamics, self.defaults,
-                                  covers=lambda i: self.canonical.covers(next(a for a in assets if a.id == i), shape.phenotypes))
+                                  beyond=lambda i: self.canonical.beyond_weight(next(a for a in assets if a.id == i), shape.phenotypes))
         return PreparedDrape(request, shape, motion, assets, options, methods, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:
@@ -245,7 +252,9 @@ class Runtime:
         }
         tracks = [
             GarmentTrack(name=g.asset.id, vertices=g.vertices, faces=g.asset.faces, uvs=g.asset.uvs, face_uvs=g.asset.face_uvs,
-                         metadata={"layer": g.asset.layer, "category": g.asset.category, "fit": g.method.fit, "dynamics": g.method.dynamics},
+                         metadata={"layer": g.asset.layer, "category": g.asset.category, "fit": g.method.fit, "dynamics": g.method.dynamics,
+                                   **({} if g.method.beyond is None else {"beyond_range": {"fit": g.method.beyond.fit, "dynamics": g.method.beyond.dynamics,
+                                                                                           "weight": g.method.beyond_weight}})},
                          appearance=g.asset.appearance)
             for g in result.garments
         ]
@@ -280,7 +289,7 @@ class Runtime:
             files.append("body/diffused.npz")
         for g in result.garments:
             files.append(f"garments/{g.asset.id}/garment.npz")
-            if g.method.fit in ("learned", "learned-canonical"):
+            if any(f in ("learned", "learned-canonical") for f in g.method.fits):
                 files.append(f"models/{g.asset.id}/{self.models.get(g.asset.id).meta['fit']['file']}")
             if g.method.dynamics == "learned" and g.method.fit == "canonical":
                 meta = self.canonical.learned(g.asset.id).meta

@@ -234,3 +234,40 @@ def test_learned_canonical_keeps_the_one_size_garment_from_stretching_with_a_tal
     with pytest.raises(MissingModelError, match="crewtee") as err:
         drape(body, far, motion, [catalog.get("crewtee")], options.replace(fit="learned-canonical"), canonical=canonical)
     assert err.value.field == "/options/fit"
+
+
+def test_the_default_blends_across_the_edge_of_the_body_range(setup):
+    """Within BLEND_BAND of the T-shirt's range the default drape is (1 - w) x the learned model's
+    + w x the beyond-range method's (collision stages off: nothing moves them after), w a
+    smoothstep from 0 to 1 across the band, 0.5 at the range."""
+    from inference.canonical import BLEND_BAND, BODY_RANGE_BY_CATEGORY
+
+    body, catalog, canonical = setup
+    tshirt = catalog.get("tshirt")
+    train = canonical.train_phenotypes("tshirt")
+    r = BODY_RANGE_BY_CATEGORY["top"]
+    away = np.array([0.0, 0.0, 0.0, -1.0, 0.0, 0.0], np.float32)  # lighter than the neutral training body
+
+    def at(d):
+        return (train[0] + d * away)[None]
+
+    assert canonical.beyond_weight(tshirt, at(0.0)) == 0.0 and canonical.beyond_weight(tshirt, at(r * (1 - BLEND_BAND))) == 0.0
+    assert canonical.beyond_weight(tshirt, at(r)) == pytest.approx(0.5, abs=1e-3)
+    assert canonical.beyond_weight(tshirt, at(r * (1 + BLEND_BAND) + 1e-3)) == 1.0
+    w = [canonical.beyond_weight(tshirt, at(d)) for d in np.linspace(0.2, 0.5, 13)]
+    assert all(b >= a for a, b in zip(w, w[1:]))  # monotone
+    clip = ClipLibrary().load("walk")
+    motion = PoseSequence(clip.rotations[:3], clip.translation[:3], clip.fps)
+    shape = body.shape(at(r * 0.95))
+    off = DrapeOptions(lift_arms=False, collisions="off")
+    blended = drape(body, shape, motion, [tshirt], off, canonical=canonical)
+    m = blended.garments[0].method
+    beyond = default_methods().get("tshirt").beyond_range
+    assert m.beyond == (beyond.method if beyond is not None else Method("canonical", "none")) and 0.0 < m.beyond_weight < 0.5
+    own = drape(body, shape, motion, [tshirt], off.replace(fit="canonical", dynamics="learned"), canonical=canonical).garments[0].vertices
+    other = drape(body, shape, motion, [tshirt], off.replace(fit=m.beyond.fit, dynamics=m.beyond.dynamics), canonical=canonical).garments[0].vertices
+    np.testing.assert_allclose(blended.garments[0].vertices, (1 - m.beyond_weight) * own + m.beyond_weight * other, atol=1e-6)
+    assert np.abs(own - other).max() > 0.01  # the two differ: the blend is what smooths the edge
+    # with the collision stages, no vertex inside the body
+    full = drape(body, shape, motion, [tshirt], DrapeOptions(lift_arms=False), canonical=canonical)
+    assert full.garments[0].method == m and not inside_mask(full.garments[0].vertices, full.body_vertices, body.faces).any()

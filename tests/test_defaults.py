@@ -151,3 +151,18 @@ def test_pipeline_without_a_table_reads_the_shipped_file(scene):
     default = default_methods().get("tshirt")
     result = drape(body, shape, motion, [tshirt], DrapeOptions(guard=False, lift_arms=False), models=models)
     assert result.garments[0].method == default.method
+
+
+def test_near_the_edge_of_the_range_the_default_blends_into_the_beyond_range_method():
+    beyond = BeyondRange("learned-canonical", "none", "closest on the bodies split")
+    table = DefaultMethods({"tshirt": DefaultMethod("canonical", "learned", beyond_range=beyond, **ENTRY),
+                            "trousers": DefaultMethod("canonical", "learned", **ENTRY)})
+    ids = ["tshirt", "trousers"]
+    assert resolve_methods(ids, None, None, table, beyond=lambda g: 0.0) == [Method("canonical", "learned")] * 2
+    assert resolve_methods(ids, None, None, table, beyond=lambda g: 1.0) == [Method("learned-canonical", "none"), Method("canonical", "none")]
+    mixed = resolve_methods(ids, None, None, table, beyond=lambda g: 0.4)
+    assert mixed == [Method("canonical", "learned", beyond=Method("learned-canonical", "none"), beyond_weight=0.4),
+                     Method("canonical", "learned", beyond=Method("canonical", "none"), beyond_weight=0.4)]
+    assert mixed[0].fits == ("canonical", "learned-canonical") and mixed[0].own == Method("canonical", "learned") and mixed[0].canonical
+    # what a request names is never blended
+    assert resolve_methods(ids, None, "learned", table, beyond=lambda g: 0.4) == [Method("canonical", "learned")] * 2

@@ -427,3 +427,16 @@ def test_a_body_beyond_the_learned_models_range_runs_and_names_its_beyond_range_
     from inference.metrics import inside_mask
 
     assert not inside_mask(z["garment_0_vertices"], z["body_vertices"], z["body_faces"]).any()
+    # at the edge of the range the two are blended, and the metadata says how
+    from inference.body import PHENOTYPE_LABELS
+    from inference.canonical import BODY_RANGE_BY_CATEGORY, CanonicalModels
+
+    edge = CanonicalModels().train_phenotypes("tshirt")[0] + 0.95 * BODY_RANGE_BY_CATEGORY["top"] * np.array([0, 0, 0, -1, 0, 0], np.float32)
+    r = client.post("/v1/drape", json={**WALK_TSHIRT, "body": {"phenotypes": dict(zip(PHENOTYPE_LABELS, edge.tolist()))}, "format": "npz",
+                                       "motion": {"type": "clip", "clip": "walk", "duration_s": 0.2}})
+    assert r.status_code == 200, r.text
+    meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
+    g = meta["garments"][0]
+    assert (g["fit"], g["dynamics"]) == ("canonical", "learned") and 0.0 < g["beyond_range"]["weight"] < 0.5
+    assert (g["beyond_range"]["fit"], g["beyond_range"]["dynamics"]) == (beyond["fit"], beyond["dynamics"])
+    assert " + " in meta["model_versions"]["fit"]["tshirt"] and meta["model_versions"]["fit"]["tshirt"].startswith(MODEL_VERSIONS["canonical"])
