@@ -212,20 +212,17 @@ def default_methods(assets_dir: Path | str = ASSETS_DIR) -> DefaultMethods:
 
 
 def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics: str | None = None,
-                    defaults: DefaultMethods | None = None, covers: Callable[[str], bool] | None = None,
-                    beyond: Callable[[str], float] | None = None) -> list[Method]:
+                    defaults: DefaultMethods | None = None, beyond: Callable[[str], float] | None = None) -> list[Method]:
     """The method each garment runs: ``fit`` / ``dynamics`` where given (the same for every
     garment), else the garment's own default from ``defaults`` (default: ``default_methods()``,
     read only when an option is None).
 
-    covers : garment id -> whether its learned canonical model serves this body
-             (``inference.canonical.CanonicalModels.covers``): where it does not, a default of fit
-             'canonical' with dynamics 'learned' runs the entry's ``beyond_range`` method (without
-             one, dynamics 'none': the static canonical form), unless the request names the fit
-             or the dynamics
-    beyond : garment id -> how far beyond that range this body is, 0 (inside) .. 1 (beyond)
-             (``CanonicalModels.beyond_weight``; in place of ``covers``): between the two, the
-             default blends into the beyond-range method (``Method.beyond_weight``)
+    beyond : garment id -> how far beyond its learned canonical model's body range this body is,
+             0 (within) .. 1 (beyond) (``inference.canonical.CanonicalModels.beyond_weight``):
+             at 1 a default of fit 'canonical' with dynamics 'learned' runs the entry's
+             ``beyond_range`` method (without one, dynamics 'none': the static canonical form),
+             between 0 and 1 a blend of the two (``Method.beyond_weight``); never where the request
+             names the fit or the dynamics
     returns : one ``Method`` per garment id, in order
     """
     if fit is not None and fit not in FIT_MODES:
@@ -237,8 +234,8 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
     out = []
     for g in garment_ids:
         m = Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
-        if dynamics is None and m == Method("canonical", "learned") and (covers is not None or beyond is not None):
-            w = float(beyond(g)) if beyond is not None else 0.0 if covers(g) else 1.0
+        if dynamics is None and m == Method("canonical", "learned") and beyond is not None:
+            w = float(beyond(g))
             entry = defaults.get(g).beyond_range if fit is None else None
             other = entry.method if entry is not None else Method("canonical", "none")  # beyond the learned model's body range
             if w >= 1.0:

@@ -99,14 +99,14 @@ def test_resolution_per_garment_and_explicit_overrides():
 def test_a_body_beyond_the_learned_canonical_models_range_gets_the_static_canonical_form():
     table = DefaultMethods({"trousers": DefaultMethod("canonical", "learned", **ENTRY), "tshirt": DefaultMethod("learned", "learned", **ENTRY)})
     ids = ["trousers", "tshirt"]
-    far = lambda g: False  # noqa: E731 - no learned model covers this body
-    assert resolve_methods(ids, None, None, table, covers=lambda g: True) == [Method("canonical", "learned"), Method("learned", "learned")]
+    far = lambda g: 1.0  # noqa: E731 - no learned model covers this body
+    assert resolve_methods(ids, None, None, table, beyond=lambda g: 0.0) == [Method("canonical", "learned"), Method("learned", "learned")]
     # only the canonical-learned default falls back; the ch. 4 models have no body range
-    assert resolve_methods(ids, None, None, table, covers=far) == [Method("canonical", "none"), Method("learned", "learned")]
+    assert resolve_methods(ids, None, None, table, beyond=far) == [Method("canonical", "none"), Method("learned", "learned")]
     # an explicit dynamics is what the request asked for: never changed
-    assert resolve_methods(ids, None, "learned", table, covers=far) == [Method("canonical", "learned"), Method("learned", "learned")]
+    assert resolve_methods(ids, None, "learned", table, beyond=far) == [Method("canonical", "learned"), Method("learned", "learned")]
     # the fit named, the dynamics left to the default ('learned'): still beyond the range
-    assert resolve_methods(ids, "canonical", None, table, covers=far) == [Method("canonical", "none")] * 2
+    assert resolve_methods(ids, "canonical", None, table, beyond=far) == [Method("canonical", "none")] * 2
 
 
 def test_a_body_beyond_the_range_runs_the_entrys_beyond_range_method():
@@ -114,12 +114,12 @@ def test_a_body_beyond_the_range_runs_the_entrys_beyond_range_method():
     table = DefaultMethods({"trousers": DefaultMethod("canonical", "learned", **ENTRY),
                             "tshirt": DefaultMethod("canonical", "learned", beyond_range=beyond, **ENTRY)})
     ids = ["trousers", "tshirt"]
-    far = lambda g: False  # noqa: E731
-    assert resolve_methods(ids, None, None, table, covers=lambda g: True) == [Method("canonical", "learned")] * 2
-    assert resolve_methods(ids, None, None, table, covers=far) == [Method("canonical", "none"), Method("learned-canonical", "none")]
+    far = lambda g: 1.0  # noqa: E731
+    assert resolve_methods(ids, None, None, table, beyond=lambda g: 0.0) == [Method("canonical", "learned")] * 2
+    assert resolve_methods(ids, None, None, table, beyond=far) == [Method("canonical", "none"), Method("learned-canonical", "none")]
     # a request that names the fit or the dynamics gets what it names
-    assert resolve_methods(ids, "canonical", None, table, covers=far) == [Method("canonical", "none")] * 2
-    assert resolve_methods(ids, None, "learned", table, covers=far) == [Method("canonical", "learned")] * 2
+    assert resolve_methods(ids, "canonical", None, table, beyond=far) == [Method("canonical", "none")] * 2
+    assert resolve_methods(ids, None, "learned", table, beyond=far) == [Method("canonical", "learned")] * 2
     assert table.as_dict()["tshirt"]["beyond_range"] == {"fit": "learned-canonical", "dynamics": "none", "reason": "closest on the bodies split"}
     assert "beyond_range" not in table.as_dict()["trousers"]
     round_trip = DefaultMethods.from_json({"format": 1, "garments": table.as_dict()}, ids)
