@@ -66,6 +66,9 @@ def main() -> None:
             continue
         asset = catalog.get(gid)
         lg = models.get(gid)
+        if not lg.has_wrinkles:
+            log.info("%-10s a fit regressor alone (no wrinkle GRU): skipped", gid)
+            continue
         retarget = asset.retarget_fit(hm08)
         lg.wrinkles(phen[:1], gamma[:1, :2])  # warm-up
 

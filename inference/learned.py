@@ -9,6 +9,11 @@ out so that a long sequence can be processed in chunks. Both are trained by
 ``training.train_fit`` / ``training.train_wrinkle`` and exported by ``training.export_onnx`` to
 ``assets/models/<garment_id>/{fit.onnx, wrinkle.onnx, model.json}``.
 
+A ``fit.onnx`` may answer the coefficients of a geodesic output basis instead of displacements
+(``model.json``'s ``fit.basis``: node ids and sigma, ``inference.fit_basis``): the basis is rebuilt
+here from the garment's template, once per load, and R_G = Phi @ coefficients. A garment may ship
+R_G alone (``"wrinkle": null``): its dynamics 'learned' is then only the canonical model's.
+
 ``LearnedModels`` is the registry the pipeline uses: each garment's models are loaded on first
 use, once; a garment without models raises ``MissingModelError``.
 """
@@ -24,6 +29,8 @@ import onnxruntime as ort
 
 from inference.body import ASSETS_DIR
 from inference.errors import InputShapeError, InputValueError, UnknownAssetError
+from inference.fit_basis import geodesic_rbf_basis
+from inference.garment import GarmentAsset
 
 MODELS_DIR = ASSETS_DIR / "models"
 
@@ -46,27 +53,46 @@ class LearnedGarment:
     """The ONNX fit and wrinkle models of one garment.
 
     meta : model.json (training config, metrics, input/output shapes)
+    fit_basis : (V, K) float32, the geodesic basis the fit's coefficients multiply (None: fit.onnx
+                answers displacements)
+    wrinkle_session : None where the garment ships R_G alone
     """
 
     garment_id: str
     meta: dict
     fit_session: ort.InferenceSession
-    wrinkle_session: ort.InferenceSession
+    wrinkle_session: ort.InferenceSession | None
+    fit_basis: np.ndarray | None = None
 
     @classmethod
-    def load(cls, directory: Path | str, threads: int = 1) -> "LearnedGarment":
-        """Load ``directory/{model.json, fit.onnx, wrinkle.onnx}``."""
+    def load(cls, directory: Path | str, threads: int = 1, garment=None) -> "LearnedGarment":
+        """Load ``directory/{model.json, fit.onnx[, wrinkle.onnx]}``; ``garment`` (a
+        ``GarmentAsset``) is needed where the fit ships a geodesic basis to rebuild."""
         directory = Path(directory)
         meta_path = directory / "model.json"
         if not meta_path.exists():
             raise MissingModelError("garment", f"no learned models for garment {directory.name!r} ({meta_path} is missing)")
         meta = json.loads(meta_path.read_text())
+        basis = meta["fit"].get("basis")
+        phi = None
+        if basis is not None:
+            if basis.get("kind") != "geodesic" or garment is None:
+                raise ValueError(f"{meta_path}: fit basis {basis.get('kind')!r} needs 'geodesic' and the garment's template")
+            phi = geodesic_rbf_basis(garment.vertices, garment.edges, np.asarray(basis["nodes"], np.int64), float(basis["sigma_m"]))
+            if phi.shape != (int(meta["vertices"]), int(meta["fit"]["basis_size"])):
+                raise ValueError(f"{meta_path}: basis {phi.shape} against {meta['vertices']} vertices, {meta['fit']['basis_size']} nodes")
         return cls(
             garment_id=str(meta["garment"]),
             meta=meta,
             fit_session=ort_session(directory / meta["fit"]["file"], threads),
-            wrinkle_session=ort_session(directory / meta["wrinkle"]["file"], threads),
+            wrinkle_session=ort_session(directory / meta["wrinkle"]["file"], threads) if meta.get("wrinkle") else None,
+            fit_basis=phi,
         )
+
+    @property
+    def has_wrinkles(self) -> bool:
+        """Whether the garment ships R_L (wrinkle.onnx)."""
+        return self.wrinkle_session is not None
 
     @property
     def num_vertices(self) -> int:
@@ -74,6 +100,8 @@ class LearnedGarment:
 
     @property
     def descriptor_size(self) -> int:
+        if self.wrinkle_session is None:
+            raise MissingModelError("/options/dynamics", f"garment {self.garment_id!r} ships no wrinkle model (R_L)")
         return int(self.meta["wrinkle"]["descriptor_size"])
 
     @property
@@ -97,7 +125,10 @@ class LearnedGarment:
         returns    : (B, V, 3) float32 metres (add to ``GarmentAsset.retarget_fit``)
         """
         (out,) = self.fit_session.run(None, {"phenotypes": self._phenotypes(phenotypes)})
-        return out
+        if self.fit_basis is not None:  # (B, K, 3) coefficients: one GEMM (V, K) @ (K, 3B)
+            B, K = out.shape[:2]
+            out = (self.fit_basis @ out.transpose(1, 0, 2).reshape(K, 3 * B)).reshape(-1, B, 3).transpose(1, 0, 2)
+        return np.ascontiguousarray(out, np.float32)
 
     def wrinkles(self, phenotypes: np.ndarray, gamma: np.ndarray, h0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """R_L over a whole sequence in one call.
@@ -109,6 +140,9 @@ class LearnedGarment:
         returns    : displacements (B, T, V, 3) float32 metres (unposed, added to the fit) and
                      the final state hT (L, B, H)
         """
+        if self.wrinkle_session is None:
+            raise MissingModelError("/options/dynamics", f"garment {self.garment_id!r} ships no wrinkle model (R_L); "
+                                                         "use dynamics='none', or fit='canonical' where it has a canonical model")
         p = self._phenotypes(phenotypes)
         g = np.ascontiguousarray(gamma, np.float32)
         B, F = p.shape[0], self.descriptor_size
@@ -130,8 +164,9 @@ class LearnedModels:
     """Registry of learned garment models under ``models_dir/<garment_id>/``: loaded lazily,
     once per garment (thread-safe), shared by every request."""
 
-    def __init__(self, models_dir: Path | str = MODELS_DIR, threads: int = 1):
+    def __init__(self, models_dir: Path | str = MODELS_DIR, threads: int = 1, garments_dir: Path | str | None = None):
         self.models_dir = Path(models_dir)
+        self.garments_dir = Path(garments_dir) if garments_dir is not None else self.models_dir.parent / "garments"
         self.threads = threads
         self._loaded: dict[str, LearnedGarment] = {}
         self._lock = threading.Lock()
@@ -155,8 +190,14 @@ class LearnedModels:
                 if not self.available(garment_id):
                     raise MissingModelError(field, f"garment {garment_id!r} has no learned models (assets/models/{garment_id}/); "
                                                        "use fit='retarget' and dynamics='none'")
-                self._loaded[garment_id] = LearnedGarment.load(self.models_dir / garment_id, self.threads)
+                self._loaded[garment_id] = LearnedGarment.load(self.models_dir / garment_id, self.threads, self._garment(garment_id))
             return self._loaded[garment_id]
+
+
+    def _garment(self, garment_id: str):
+        """The garment's asset where its fit ships a geodesic basis (rebuilt from the template), else None."""
+        meta = json.loads((self.models_dir / garment_id / "model.json").read_text())
+        return GarmentAsset.load(self.garments_dir / garment_id) if meta["fit"].get("basis") else None
 
 
 _DEFAULT: LearnedModels | None = None

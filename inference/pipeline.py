@@ -53,7 +53,7 @@ from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
 from inference.layers import LayerContacts, body_anchors, untangle_layers
-from inference.learned import LearnedGarment, LearnedModels, default_models
+from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
 from inference.options import DrapeOptions
@@ -263,6 +263,10 @@ def drape(
         with timer("models"):  # loaded once per garment by the registry; raises MissingModelError
             learned = [models.get(g.id, "/options/fit" if any(f in LEARNED_FITS for f in m.fits) else "/options/dynamics") if c else None
                        for g, m, c in zip(garments, methods, ch4)]
+            for g, m, lg in zip(garments, methods, learned):
+                if lg is not None and m.dynamics == "learned" and m.fit != "canonical" and not lg.has_wrinkles:
+                    raise MissingModelError("/options/dynamics", f"garment {g.id!r} ships a fit regressor but no wrinkle model; "
+                                                                 "use dynamics='none', or fit='canonical'")
     if any(m.fit == "canonical" for m in methods):
         with timer("models"):  # raises MissingModelError for dynamics 'learned' where a garment ships none
             for g, m in zip(garments, methods):

@@ -24,6 +24,9 @@ CORNER = np.array([[1.0, 1.0, 1.0, 1.0, 1.0, 1.0]], np.float32)
 # have none: their defaults are the retarget or fit 'canonical', and a request for the learned
 # model answers 422 (MissingModelError, test below).
 WITH_MODELS = ("dress", "jacket", "longsleeve", "trousers", "tshirt")
+# The garments that ship the fit regressor alone, on the geodesic output basis (inference.fit_basis):
+# fit 'learned' and 'learned-canonical' run; dynamics 'learned' runs only with fit 'canonical'.
+FIT_ONLY = ("crewtee", "croptop", "shirt")
 
 
 @pytest.fixture(scope="module")
@@ -43,8 +46,8 @@ def test_the_garments_without_models_default_to_methods_they_can_run():
     from inference.defaults import default_methods
 
     table = default_methods()
-    others = sorted(set(CATALOG.ids()) - set(WITH_MODELS))
-    assert set(WITH_MODELS) <= set(CATALOG.ids()) and others
+    others = sorted(set(CATALOG.ids()) - set(WITH_MODELS) - set(FIT_ONLY))
+    assert set(WITH_MODELS) | set(FIT_ONLY) <= set(CATALOG.ids()) and others
     for gid in others:
         assert not (MODELS_DIR / gid / "model.json").exists()
         method = table.get(gid)
@@ -67,6 +70,36 @@ def test_the_garments_with_models_ship_them(garment_id):
     size = sum((MODELS_DIR / garment_id / meta[k]["file"]).stat().st_size for k in ("fit", "wrinkle"))
     assert size <= SIZE_LIMIT_BYTES
     assert meta["fit"]["train_wall_s"] > 0 and meta["wrinkle"]["train_wall_s"] > 0
+
+
+@pytest.mark.parametrize("garment_id", FIT_ONLY)
+def test_the_garments_with_a_fit_alone_ship_a_compact_one(models, garment_id):
+    meta = json.loads((MODELS_DIR / garment_id / "model.json").read_text())
+    assert meta["garment"] == garment_id and meta["vertices"] == CATALOG.get(garment_id).num_vertices
+    assert meta["wrinkle"] is None and not (MODELS_DIR / garment_id / "wrinkle.onnx").exists()
+    fit = meta["fit"]
+    assert fit["basis"]["kind"] == "geodesic" and len(fit["basis"]["nodes"]) == fit["basis_size"]
+    assert fit["parity_max_abs_m"] <= PARITY_TOLERANCE and fit["train_wall_s"] > 0
+    assert (MODELS_DIR / garment_id / fit["file"]).stat().st_size <= 1024 * 1024
+    lg = models.get(garment_id)
+    assert not lg.has_wrinkles and lg.fit_basis.shape == (lg.num_vertices, fit["basis_size"])
+    out = lg.fit(np.concatenate([NEUTRAL_PHENOTYPES[None], CORNER]))
+    assert out.shape == (2, lg.num_vertices, 3) and out.dtype == np.float32 and np.isfinite(out).all()
+    assert np.abs(out[0] - out[1]).max() > 1e-3  # R_G depends on the shape
+    assert np.abs(out).max() < 0.3  # a fit, not a spike
+
+
+def test_a_fit_alone_refuses_the_learned_dynamics_by_field(models):
+    body = BodyModel.load()
+    shape = body.shape(NEUTRAL_PHENOTYPES[None])
+    rot, trans = adapt_clip(ClipLibrary().load("walk"), body, shape)
+    motion = PoseSequence(rot[0, :3], trans[0, :3], 30.0)
+    garment = [CATALOG.get(FIT_ONLY[0])]
+    with pytest.raises(MissingModelError) as err:
+        drape(body, shape, motion, garment, DrapeOptions(fit="learned", dynamics="learned", guard=False), models=models)
+    assert err.value.field == "/options/dynamics"
+    fitted = drape(body, shape, motion, garment, DrapeOptions(fit="learned-canonical", dynamics="none"), models=models)
+    assert np.isfinite(fitted.garments[0].vertices).all()
 
 
 @pytest.mark.parametrize("garment_id", WITH_MODELS)

@@ -202,3 +202,39 @@ def test_matrix_candidates_match_the_kd_tree():
     # the nearest candidate is the nearest body vertex
     nearest = torch.cdist(x, body).argmin(-1)
     assert (candidates(body, x, 8)[..., 0] == nearest).float().mean() > 0.999
+
+
+@pytest.mark.timeout(180)
+def test_smoke_geodesic_fit_alone_exports_and_runs(tmp_path):
+    """A fit regressor on the geodesic basis with no wrinkle model: fit.onnx answers the
+    coefficients, the runtime rebuilds the basis from the template and gives the torch model's
+    displacements; dynamics 'learned' outside the canonical space is refused naming the field."""
+    from inference.garment import GarmentCatalog
+    from inference.learned import LearnedModels, MissingModelError
+    from training.export_onnx import PARITY_TOLERANCE_M, export_garment
+    from training.train_fit import SMOKE as FIT_SMOKE, FitConfig, load_fit, train_fit
+
+    ckpt = tmp_path / "checkpoints"
+    cfg = FitConfig(garment=GARMENT, **{**FIT_SMOKE, "basis": "geodesic", "basis_size": 24, "lr": 1e-2})
+    train_fit(cfg, smoke=True, out_dir=ckpt)
+    entry = export_garment(GARMENT, ckpt, tmp_path / "models", smoke=True)
+    assert entry["wrinkle"] is None and entry["fit"]["basis"]["kind"] == "geodesic" and len(entry["fit"]["basis"]["nodes"]) == 24
+    assert entry["fit"]["outputs"] == {"fit_coefficients": ["B", 24, 3]} and entry["fit"]["parity_max_abs_m"] <= PARITY_TOLERANCE_M
+    assert not (tmp_path / "models" / GARMENT / "wrinkle.onnx").exists()
+
+    lg = LearnedModels(tmp_path / "models", garments_dir=GarmentCatalog.load().get(GARMENT).directory.parent).get(GARMENT)
+    p = np.array([[0.5, 0.8, 0.5, 0.5, 0.5, 0.5], [1, 1, 1, 1, 1, 1]], np.float32)
+    model, _ = load_fit(ckpt / GARMENT / "fit_smoke.pt")
+    with torch.no_grad():
+        ref = model(torch.as_tensor(p)).numpy()
+    got = lg.fit(p)
+    assert np.abs(ref).max() > 1e-4  # the smoke steps moved it off the retarget
+    np.testing.assert_allclose(got, ref, atol=PARITY_TOLERANCE_M)
+    assert not lg.has_wrinkles
+    from training.import_onnx import fit_checkpoint  # back to torch from the ONNX file (to continue training)
+
+    ck = fit_checkpoint(tmp_path / "models" / GARMENT)
+    assert ck["basis_spec"] == entry["fit"]["basis"]
+    with pytest.raises(MissingModelError) as err:
+        lg.wrinkles(p[:1], np.zeros((1, 4, 10), np.float32))
+    assert err.value.field == "/options/dynamics"

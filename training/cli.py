@@ -28,6 +28,8 @@ OPTIONS = {
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
     "corner_fraction": ("--corner-fraction", "share of training windows on the 64 box corners of the shape bank (default: uniform over the bank)"),
+    "basis": ("--basis", "output basis of the fit regressor: harmonics (ships in fit.onnx) or geodesic (rebuilt at runtime)"),
+    "basis_size": ("--basis-size", "output basis size: harmonics, or the geodesic basis' nodes"),
     "clips": ("--clips", "training clips, comma-separated CMU ids (training.datasets: AMC or BVH_CLIPS)"),
 }
 
@@ -56,7 +58,7 @@ def run(argv: list[str] | None, description: str, config_cls, train: Callable, s
     defaults = {f.name: f.default for f in dataclasses.fields(config_cls)}
     for name, (flag, help_text) in OPTIONS.items():
         if name in defaults:
-            kind = str if name in ("init", "device") else int if name in ("max_steps", "threads", "pose_workers", "inside_workers", "window_frames") else float
+            kind = str if name in ("init", "device", "basis") else int if name in ("max_steps", "threads", "pose_workers", "inside_workers", "window_frames", "basis_size") else float
             if isinstance(defaults[name], bool):
                 kind = _flag
             if name == "clips":

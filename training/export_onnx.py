@@ -2,7 +2,11 @@
 
 Writes ``assets/models/<garment>/``:
 - ``fit.onnx``     phenotypes (B, 6) float32 -> fit_displacement (B, V, 3) float32, metres:
-                   R_G, a residual on the .mhclo retarget fit (training.models.FitRegressor)
+                   R_G, a residual on the .mhclo retarget fit (training.models.FitRegressor);
+                   trained on the geodesic basis (``--basis geodesic``), it answers
+                   fit_coefficients (B, K, 3) instead, and model.json's ``fit.basis`` holds
+                   the node ids and sigma the runtime rebuilds the basis from
+                   (``inference.fit_basis``): ~0.25 MB instead of ~3 MB
 - ``wrinkle.onnx`` phenotypes (B, 6), gamma (B, T, F), h0 (L, B, H) -> wrinkle_displacement
                    (B, T, V, 3) metres, hT (L, B, H): R_L over a whole sequence in one call (the
                    ONNX GRU op); pass hT as the next chunk's h0 to process a long sequence in chunks
@@ -13,7 +17,8 @@ Writes ``assets/models/<garment>/``:
 Parity: torch vs onnxruntime on random inputs (several batch sizes and lengths), max abs
 difference <= PARITY_TOLERANCE_M.
 
-Run: ``python -m training.export_onnx --garment tshirt`` (after train_fit and train_wrinkle).
+Run: ``python -m training.export_onnx --garment tshirt`` (after train_fit and train_wrinkle; a
+garment with no wrinkle checkpoint exports its fit alone, ``"wrinkle": null``).
 """
 from __future__ import annotations
 
@@ -103,30 +108,65 @@ def _record_metadata(record: dict) -> dict[str, str]:
     }
 
 
-def export_fit(model: FitRegressor, path: Path, record: dict, seed: int = 0) -> dict:
-    """fit.onnx + parity (B = 1 and 5); returns the model.json entry."""
+class _FitCoefficients(nn.Module):
+    """R_G up to its output basis: phenotypes (B, 6) -> coefficients (B, K, 3), metres."""
+
+    def __init__(self, model: FitRegressor):
+        super().__init__()
+        self.model = model
+
+    def forward(self, phenotypes: torch.Tensor) -> torch.Tensor:
+        return self.model.coefficients(phenotypes)
+
+
+def export_fit(model: FitRegressor, path: Path, record: dict, seed: int = 0, basis_spec: dict | None = None, asset=None) -> dict:
+    """fit.onnx + parity (B = 1 and 5); returns the model.json entry.
+
+    basis_spec None: the ONNX holds the output basis and answers displacements (B, V, 3). A
+    geodesic basis (``inference.fit_basis``; its node ids and sigma in ``basis_spec``): the ONNX
+    answers the coefficients (B, K, 3), its weights are stored as float16 where the parity allows,
+    and the parity is taken after the runtime's own basis (rebuilt from ``asset``'s template)."""
     model = model.eval()
+    graph, out_name = (model, "fit_displacement") if basis_spec is None else (_FitCoefficients(model), "fit_coefficients")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(model, (torch.as_tensor(_random_phenotypes(2, np.random.default_rng(seed))),), str(path),
-                          input_names=["phenotypes"], output_names=["fit_displacement"], opset_version=OPSET, dynamo=False,
-                          dynamic_axes={"phenotypes": {0: "B"}, "fit_displacement": {0: "B"}})
+        torch.onnx.export(graph, (torch.as_tensor(_random_phenotypes(2, np.random.default_rng(seed))),), str(path),
+                          input_names=["phenotypes"], output_names=[out_name], opset_version=OPSET, dynamo=False,
+                          dynamic_axes={"phenotypes": {0: "B"}, out_name: {0: "B"}})
     _add_metadata(path, _record_metadata(record))
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    rng = np.random.default_rng(seed + 1)
-    worst = 0.0
-    for B in (1, 5):
-        p = _random_phenotypes(B, rng)
-        (y,) = sess.run(None, {"phenotypes": p})
-        with torch.no_grad():
-            ref = model(torch.as_tensor(p)).numpy()
-        worst = max(worst, float(np.abs(y - ref).max()))
+    phi = None
+    if basis_spec is not None:
+        from inference.fit_basis import geodesic_rbf_basis
+
+        phi = geodesic_rbf_basis(asset.vertices, asset.edges, np.asarray(basis_spec["nodes"]), basis_spec["sigma_m"])
+
+    def parity() -> float:
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        rng = np.random.default_rng(seed + 1)
+        worst = 0.0
+        for B in (1, 5):
+            p = _random_phenotypes(B, rng)
+            (y,) = sess.run(None, {"phenotypes": p})
+            if phi is not None:
+                y = np.einsum("vk,bkc->bvc", phi, y)
+            with torch.no_grad():
+                ref = model(torch.as_tensor(p)).numpy()
+            worst = max(worst, float(np.abs(y - ref).max()))
+        return worst
+
+    if phi is not None:
+        full = path.read_bytes()
+        half_weights(path)
+        if not parity() <= PARITY_TOLERANCE_M:  # float16 weights cost more than the tolerance: keep float32
+            path.write_bytes(full)
+    worst = parity()
     if not worst <= PARITY_TOLERANCE_M:
         raise RuntimeError(f"{path.name}: parity {worst:.3g} m exceeds {PARITY_TOLERANCE_M} m")
     V = model.output.num_vertices
+    outputs = {"fit_displacement": ["B", V, 3]} if basis_spec is None else {"fit_coefficients": ["B", model.output.size, 3]}
     return {
         "file": path.name, "sha256": _sha256(path), "bytes": path.stat().st_size, "opset": OPSET,
-        "inputs": {"phenotypes": ["B", 6]}, "outputs": {"fit_displacement": ["B", V, 3]},
+        "inputs": {"phenotypes": ["B", 6]}, "outputs": outputs, **({"basis": basis_spec} if basis_spec is not None else {}),
         "parity_max_abs_m": worst, "basis_size": model.output.size,
         "config": record["config"], "steps": record["steps"], "train_wall_s": record["train_wall_s"],
         "metrics": record["metrics"], "git_commit": record.get("git_commit"),
@@ -175,32 +215,43 @@ def export_wrinkle(model: WrinkleGRU, path: Path, record: dict, seed: int = 0) -
 
 
 def export_garment(garment: str, checkpoints: Path = CHECKPOINT_DIR, out_dir: Path = MODELS_DIR, smoke: bool = False) -> dict:
-    """Export ``checkpoints/<garment>/{fit,wrinkle}.pt`` to ``out_dir/<garment>/``; returns model.json."""
+    """Export ``checkpoints/<garment>/{fit,wrinkle}.pt`` to ``out_dir/<garment>/``; returns model.json.
+    A garment with no wrinkle checkpoint exports its fit alone (``"wrinkle": null``: fit 'learned'
+    and 'learned-canonical' run, dynamics 'learned' outside the canonical space does not)."""
+    from inference.garment import GarmentCatalog
+
     suffix = "_smoke" if smoke else ""
-    fit, fit_record = load_fit(checkpoints / garment / f"fit{suffix}.pt")
-    wrinkle, wrinkle_record = load_wrinkle(checkpoints / garment / f"wrinkle{suffix}.pt")
-    if fit.output.num_vertices != wrinkle.output.num_vertices:
+    fit_path = checkpoints / garment / f"fit{suffix}.pt"
+    fit, fit_record = load_fit(fit_path)
+    basis_spec = torch.load(fit_path, weights_only=False).get("basis_spec")
+    wrinkle_path = checkpoints / garment / f"wrinkle{suffix}.pt"
+    wrinkle, wrinkle_record = load_wrinkle(wrinkle_path) if wrinkle_path.exists() else (None, None)
+    if wrinkle is not None and fit.output.num_vertices != wrinkle.output.num_vertices:
         raise ValueError(f"{garment}: fit has {fit.output.num_vertices} vertices, wrinkle {wrinkle.output.num_vertices}")
     d = out_dir / garment
     d.mkdir(parents=True, exist_ok=True)
+    asset = GarmentCatalog.load().get(garment) if basis_spec is not None else None
+    if wrinkle is None:
+        (d / "wrinkle.onnx").unlink(missing_ok=True)
     entry = {
         "format": MODEL_FORMAT,
         "garment": garment,
         "vertices": fit.output.num_vertices,
-        "model": "thesis eq. 4.2: retarget_fit(beta) + R_G(beta) + R_L(beta, gamma_1..t), then LBS with the garment's skin weights",
+        "model": "thesis eq. 4.2: retarget_fit(beta) + R_G(beta) + R_L(beta, gamma_1..t), then LBS with the garment's skin weights"
+                 + ("" if wrinkle is not None else " (R_G only: no R_L)"),
         "fit_mode": "retarget_residual",
         "units": "metres; phenotypes raw in the adult box; gamma = inference.motion.descriptor.motion_descriptor at the clip fps",
         "fps": 30.0,
         "smoke": smoke,
-        "fit": export_fit(fit, d / "fit.onnx", fit_record),
-        "wrinkle": export_wrinkle(wrinkle, d / "wrinkle.onnx", wrinkle_record),
+        "fit": export_fit(fit, d / "fit.onnx", fit_record, basis_spec=basis_spec, asset=asset),
+        "wrinkle": export_wrinkle(wrinkle, d / "wrinkle.onnx", wrinkle_record) if wrinkle is not None else None,
         "exported_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "export_git_commit": git_commit(),
     }
-    entry["bytes_total"] = entry["fit"]["bytes"] + entry["wrinkle"]["bytes"]
+    entry["bytes_total"] = entry["fit"]["bytes"] + (entry["wrinkle"]["bytes"] if wrinkle is not None else 0)
     (d / "model.json").write_text(json.dumps(entry, indent=1) + "\n")
-    log.info("%s: fit.onnx %.1f MB (parity %.2g m), wrinkle.onnx %.1f MB (parity %.2g)", garment, entry["fit"]["bytes"] / 1e6,
-             entry["fit"]["parity_max_abs_m"], entry["wrinkle"]["bytes"] / 1e6, entry["wrinkle"]["parity_max_abs"])
+    log.info("%s: fit.onnx %.2f MB (parity %.2g m)%s", garment, entry["fit"]["bytes"] / 1e6, entry["fit"]["parity_max_abs_m"],
+             "" if wrinkle is None else f", wrinkle.onnx {entry['wrinkle']['bytes'] / 1e6:.1f} MB (parity {entry['wrinkle']['parity_max_abs']:.2g})")
     return entry
 
 

@@ -64,13 +64,25 @@ def fit_checkpoint(model_dir: Path) -> dict:
     entry = json.loads((model_dir / "model.json").read_text())["fit"]
     path = model_dir / entry["file"]
     _, w = _initializers(path)
+    spec, phi = entry.get("basis"), None
+    if spec is not None:  # a geodesic basis: rebuilt from the template; the weights under "model.", float16 ones "_f16"
+        from inference.fit_basis import geodesic_rbf_basis
+        from inference.garment import GarmentCatalog
+
+        asset = GarmentCatalog.load().get(model_dir.name)
+        basis = geodesic_rbf_basis(asset.vertices, asset.edges, np.asarray(spec["nodes"]), spec["sigma_m"])
+        w = {k.removeprefix("model.").removesuffix("_f16"): v for k, v in w.items()}
+        w["output.basis"] = basis * OutputBasis(np.ones((1, 1), np.float32)).basis[0, 0].numpy()
+        phi = basis
+    else:
+        basis = _unscaled_basis(w["output.basis"], entry["basis_size"])
     layers = sum(k.startswith("mlp.") and k.endswith(".weight") for k in w)  # one Linear per hidden layer
     hidden = int(w["mlp.0.weight"].shape[0])
-    basis = _unscaled_basis(w["output.basis"], entry["basis_size"])
     model = FitRegressor(basis, hidden, layers)
-    model.load_state_dict({k: torch.as_tensor(v) for k, v in w.items()})
-    _check_fit(model.eval(), path)
-    return {"record": _record(entry, "fit", path), "state_dict": model.state_dict(), "basis": basis, "hidden": hidden, "layers": layers}
+    model.load_state_dict({k: torch.as_tensor(v) for k, v in w.items() if k in model.state_dict()})
+    _check_fit(model.eval(), path, phi)
+    return {"record": _record(entry, "fit", path), "state_dict": model.state_dict(), "basis": basis, "basis_spec": spec,
+            "hidden": hidden, "layers": layers}
 
 
 def _gru_blocks(a: np.ndarray, H: int) -> np.ndarray:
@@ -114,10 +126,12 @@ def _check(worst: float, path: Path) -> None:
     log.info("%s: rebuilt, parity with onnxruntime %.2g", path.name, worst)
 
 
-def _check_fit(model: FitRegressor, path: Path, seed: int = 0) -> None:
+def _check_fit(model: FitRegressor, path: Path, phi: np.ndarray | None = None, seed: int = 0) -> None:
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     p = _random_phenotypes(4, np.random.default_rng(seed))
     (y,) = sess.run(None, {"phenotypes": p})
+    if phi is not None:  # coefficients (B, K, 3) of the geodesic basis
+        y = np.einsum("vk,bkc->bvc", phi, y)
     with torch.no_grad():
         _check(float(np.abs(y - model(torch.as_tensor(p)).numpy()).max()), path)
 

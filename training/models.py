@@ -67,6 +67,7 @@ class OutputBasis(nn.Module):
         basis = np.asarray(basis, np.float32)
         if basis.ndim != 2:
             raise ValueError(f"basis: expected shape (V, K), got {basis.shape}")
+        self.coeff_unit_m = float(coeff_unit_m)
         self.register_buffer("basis", torch.as_tensor(basis * np.float32(coeff_unit_m)))
 
     @property
@@ -112,6 +113,10 @@ class FitRegressor(nn.Module):
     def forward(self, phenotypes: torch.Tensor) -> torch.Tensor:
         """phenotypes : (B, 6) raw, in the adult box ; returns (B, V, 3) metres."""
         return self.output(self.head(self.mlp(self.normalise(phenotypes))))
+
+    def coefficients(self, phenotypes: torch.Tensor) -> torch.Tensor:
+        """The output basis' coefficients in metres, (B, K, 3): forward = basis (V, K) @ these."""
+        return self.head(self.mlp(self.normalise(phenotypes))).reshape(-1, self.output.size, 3) * self.output.coeff_unit_m
 
 
 class WrinkleGRU(nn.Module):

@@ -25,6 +25,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from inference.body import BodyModel
+from inference.fit_basis import farthest_nodes, geodesic_rbf_basis
 from inference.garment import GarmentCatalog
 from inference.metrics import inside_mask
 from training.datasets import CACHE_DIR, REPO_ROOT, ShapeBank, harmonic_basis, sample_adult_phenotypes
@@ -52,7 +53,8 @@ class FitConfig:
     k_collision: float | None = TRAIN_K_COLLISION  # eq. 5.12 stiffness of the training loss, J/m^3 (None: the material's)
     collision_cap_m: float | None = None  # training loss: collision penalty linear beyond this depth, m (None: cubic)
     collision_margin_m: float | None = None  # training loss: eps of eq. 5.12, m (None: the material's 2 mm)
-    basis_size: int = 128  # manifold harmonics of the output basis (training.models.OutputBasis)
+    basis_size: int = 128  # output basis size (training.models.OutputBasis): harmonics, or nodes of the geodesic basis
+    basis: str = "harmonics"  # "harmonics" (ships in fit.onnx) or "geodesic" (inference.fit_basis: only node ids and sigma ship)
     hidden: int = 128  # MLP width (thesis ch. 4.3: one hidden layer of 20 was enough with supervision)
     layers: int = 2  # hidden layers
     batch_size: int = 16  # shapes per step
@@ -104,6 +106,19 @@ def evaluate_fit(model: FitRegressor | None, cloth: ClothGeometry, bank: ShapeBa
     return out
 
 
+def output_basis(asset, config: FitConfig, smoke: bool = False) -> tuple[np.ndarray, dict | None]:
+    """R_G's output basis (V, K) and, for the geodesic one, what rebuilds it at runtime
+    (``inference.fit_basis``: node ids and sigma, metres; None for the harmonics, which ship)."""
+    if config.basis == "harmonics":
+        cache = None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy"
+        return harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, cache), None
+    if config.basis == "geodesic":
+        nodes, sigma = farthest_nodes(asset.vertices, asset.edges, config.basis_size)
+        spec = {"kind": "geodesic", "nodes": nodes.tolist(), "sigma_m": sigma}
+        return geodesic_rbf_basis(asset.vertices, asset.edges, nodes, sigma), spec
+    raise ValueError(f"basis: {config.basis!r} is neither 'harmonics' nor 'geodesic'")
+
+
 def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT_DIR) -> dict:
     """Train R_G for ``config.garment``; write ``out_dir/<garment>/fit.pt``; return the record."""
     torch.set_num_threads(config.threads)
@@ -116,7 +131,7 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     train_cloth = cloth.with_collision_stiffness(config.k_collision, config.collision_cap_m, config.collision_margin_m).to(device)  # the training loss
 
     t_bank = time.perf_counter()
-    basis = harmonic_basis(asset.num_vertices, asset.edges, config.basis_size, None if smoke else CACHE_DIR / f"{config.garment}_harmonics_{config.basis_size}.npy")
+    basis, basis_spec = output_basis(asset, config, smoke)
     bank = ShapeBank.build(body, asset, sample_adult_phenotypes(config.bank_shapes, rng), config.candidates)
     held_out = ShapeBank.build(body, asset, sample_adult_phenotypes(config.eval_shapes, np.random.default_rng(config.seed + 1), corners=False), config.candidates)
     bank_s = time.perf_counter() - t_bank
@@ -179,7 +194,8 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     }
     path = out_dir / config.garment / ("fit_smoke.pt" if smoke else "fit.pt")
     path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"record": record, "state_dict": model.state_dict(), "basis": basis, "hidden": config.hidden, "layers": config.layers}, path)
+    torch.save({"record": record, "state_dict": model.state_dict(), "basis": basis, "basis_spec": basis_spec, "hidden": config.hidden,
+                "layers": config.layers}, path)
     log.info("wrote %s (%d steps, %.1f min)", path, step, wall_s / 60)
     return record
 
