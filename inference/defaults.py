@@ -211,8 +211,19 @@ def default_methods(assets_dir: Path | str = ASSETS_DIR) -> DefaultMethods:
     return DefaultMethods.load(Path(assets_dir) / DEFAULTS_FILE, catalog_ids(assets_dir))
 
 
+# In an outfit, a default's fit 'learned-canonical' runs the static canonical form instead. The fit
+# regressor's one-size garment does not share the static form's grading with the other layers and
+# leaves 2-11 % of its vertices inside the body before the final stage; layered, on the validation
+# walk (neutral, heavy) and the bodies split, the intersecting triangle pairs between layers rose
+# 1.1-8.8x against the static form (crop top under shirt, heavy body: 519 -> 1,149 per frame;
+# shirt under jacket, val-near: 52 -> 458; T-shirt under jacket, session 34: 37 -> 145), measured
+# with ``tools/outfit_layers.py`` (docs/benchmarks.md, "A compact fit regressor").
+OUTFIT_FIT = {"learned-canonical": Method("canonical", "none")}
+
+
 def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics: str | None = None,
-                    defaults: DefaultMethods | None = None, beyond: Callable[[str], float] | None = None) -> list[Method]:
+                    defaults: DefaultMethods | None = None, beyond: Callable[[str], float] | None = None,
+                    outfit: bool = False) -> list[Method]:
     """The method each garment runs: ``fit`` / ``dynamics`` where given (the same for every
     garment), else the garment's own default from ``defaults`` (default: ``default_methods()``,
     read only when an option is None).
@@ -223,6 +234,9 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
              ``beyond_range`` method (without one, dynamics 'none': the static canonical form),
              between 0 and 1 a blend of the two (``Method.beyond_weight``); never where the request
              names the fit or the dynamics
+    outfit  : the request layers several garments: where the fit comes from the defaults, fit
+              'learned-canonical' (a garment's default or its beyond-range method) runs the static
+              canonical form instead (``OUTFIT_FIT``)
     returns : one ``Method`` per garment id, in order
     """
     if fit is not None and fit not in FIT_MODES:
@@ -231,13 +245,16 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
         raise InputValueError("/options/dynamics", f"{dynamics!r}, expected one of {list(DYNAMICS_MODES)} or null")
     if (fit is None or dynamics is None) and defaults is None:
         defaults = default_methods()
+    def layered(m: Method) -> Method:
+        return OUTFIT_FIT.get(m.fit, m) if outfit and fit is None else m
+
     out = []
     for g in garment_ids:
-        m = Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics)
+        m = layered(Method(fit if fit is not None else defaults.get(g).fit, dynamics if dynamics is not None else defaults.get(g).dynamics))
         if dynamics is None and m == Method("canonical", "learned") and beyond is not None:
             w = float(beyond(g))
             entry = defaults.get(g).beyond_range if fit is None else None
-            other = entry.method if entry is not None else Method("canonical", "none")  # beyond the learned model's body range
+            other = layered(entry.method) if entry is not None else Method("canonical", "none")  # beyond the learned model's body range
             if w >= 1.0:
                 m = other
             elif w > 0.0:

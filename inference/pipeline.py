@@ -232,7 +232,8 @@ def drape(
     # which stays a uniform option: it changes the skinning transforms and the guard's rest body)
     canonical = canonical or default_canonical()  # (loads nothing until a garment runs fit 'canonical')
     methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults,
-                              beyond=lambda i: canonical.beyond_weight(next(g for g in garments if g.id == i), shape.phenotypes))
+                              beyond=lambda i: canonical.beyond_weight(next(g for g in garments if g.id == i), shape.phenotypes),
+                              outfit=len(garments) > 1)
     hm08 = None
     if any(f != "canonical" for m in methods for f in m.fits):  # the MakeHuman bindings of the other fits (~0.7 ms)
         with timer("shape"):
@@ -414,7 +415,8 @@ def drape_chunks(
         raise InputShapeError("chunk_frames", ">= 1", (chunk_frames,))
     canonical = canonical or default_canonical()
     methods = resolve_methods([g.id for g in garments], options.fit, options.dynamics, defaults,
-                              beyond=lambda i: canonical.beyond_weight(next(g for g in garments if g.id == i), shape.phenotypes))
+                              beyond=lambda i: canonical.beyond_weight(next(g for g in garments if g.id == i), shape.phenotypes),
+                              outfit=len(garments) > 1)
     if options.lift_arms:
         lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation)
         motion, options = PoseSequence(lifted, motion.translation, motion.fps), options.replace(lift_arms=False)

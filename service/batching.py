@@ -19,7 +19,7 @@ def request_methods(request: DrapeRequest, defaults: DefaultMethods) -> list[Met
     ids = [g.id for g in request.garments]
     if (o.fit is None or o.dynamics is None) and not all(i in defaults for i in ids):
         return None
-    return resolve_methods(ids, o.fit, o.dynamics, defaults)
+    return resolve_methods(ids, o.fit, o.dynamics, defaults, outfit=len(ids) > 1)
 
 
 def merge_key(request: DrapeRequest, defaults: DefaultMethods) -> tuple | None:

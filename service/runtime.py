@@ -227,7 +227,8 @@ class Runtime:
             )
         options = o  # the request's options are the pipeline's (inference.options.DrapeOptions)
         methods = resolve_methods([a.id for a in assets], o.fit, o.dynamics, self.defaults,
-                                  beyond=lambda i: self.canonical.beyond_weight(next(a for a in assets if a.id == i), shape.phenotypes))
+                                  beyond=lambda i: self.canonical.beyond_weight(next(a for a in assets if a.id == i), shape.phenotypes),
+                                  outfit=len(assets) > 1)
         return PreparedDrape(request, shape, motion, assets, options, methods, t0)
 
     def drape_batch(self, prepared: list[PreparedDrape]) -> list[DrapeResult]:

@@ -128,7 +128,9 @@ class BeyondRangeResponse(BaseModel):
 
 
 class DefaultMethodResponse(BaseModel):
-    """What a drape runs for this garment when its options name no fit or dynamics."""
+    """What a drape runs for this garment when its options name no fit or dynamics. In a request
+    that layers several garments, a fit 'learned-canonical' here (or in ``beyond_range``) runs fit
+    'canonical' with dynamics 'none' instead (the layers share the static form's grading)."""
 
     fit: Literal["canonical", "learned-canonical", "learned", "retarget"]
     dynamics: Literal["learned", "none"]

@@ -166,3 +166,34 @@ def test_near_the_edge_of_the_range_the_default_blends_into_the_beyond_range_met
     assert mixed[0].fits == ("canonical", "learned-canonical") and mixed[0].own == Method("canonical", "learned") and mixed[0].canonical
     # what a request names is never blended
     assert resolve_methods(ids, None, "learned", table, beyond=lambda g: 0.4) == [Method("canonical", "learned")] * 2
+
+
+def test_an_outfit_runs_the_static_form_where_a_default_is_learned_canonical():
+    """inference.defaults.OUTFIT_FIT: layered, a default's fit 'learned-canonical' (its own or its
+    beyond-range method) runs the static canonical form; a request that names the fit keeps it."""
+    beyond = BeyondRange("learned-canonical", "none", "closest on the bodies split")
+    table = DefaultMethods({"croptop": DefaultMethod("learned-canonical", "none", **ENTRY),
+                            "tshirt": DefaultMethod("canonical", "learned", beyond_range=beyond, **ENTRY),
+                            "jacket": DefaultMethod("canonical", "none", **ENTRY)})
+    far = lambda g: 1.0  # noqa: E731
+    static, learned = Method("canonical", "none"), Method("learned-canonical", "none")
+    assert resolve_methods(["croptop"], None, None, table, beyond=far) == [learned]
+    assert resolve_methods(["croptop"], None, None, table, beyond=far, outfit=True) == [static]
+    assert resolve_methods(["tshirt"], None, None, table, beyond=far) == [learned]
+    assert resolve_methods(["croptop", "tshirt", "jacket"], None, None, table, beyond=far, outfit=True) == [static] * 3
+    blended = resolve_methods(["tshirt", "jacket"], None, None, table, beyond=lambda g: 0.4, outfit=True)
+    assert blended[0] == Method("canonical", "learned", beyond=static, beyond_weight=0.4)
+    # within the range the learned canonical model runs, layered or not
+    assert resolve_methods(["tshirt", "jacket"], None, None, table, beyond=lambda g: 0.0, outfit=True)[0] == Method("canonical", "learned")
+    # named by the request: kept
+    assert resolve_methods(["croptop", "tshirt"], "learned-canonical", "none", table, beyond=far, outfit=True) == [learned] * 2
+
+
+def test_a_layered_drape_names_the_static_form_it_ran(scene):
+    body, shape, motion, catalog, models = scene
+    table = DefaultMethods({"croptop": DefaultMethod("learned-canonical", "none", **ENTRY), "jacket": DefaultMethod("canonical", "none", **ENTRY)})
+    options = DrapeOptions(lift_arms=False)
+    alone = drape(body, shape, motion, [catalog.get("croptop")], options, models=models, defaults=table)
+    layered = drape(body, shape, motion, [catalog.get("croptop"), catalog.get("jacket")], options, models=models, defaults=table)
+    assert alone.garments[0].method == Method("learned-canonical", "none")
+    assert [g.method for g in layered.garments] == [Method("canonical", "none")] * 2

@@ -132,7 +132,7 @@ def garment_methods(options: DrapeOptions, garment_ids: list[str]) -> list[tuple
         return [(options.fit, options.dynamics)] * len(garment_ids)
     from inference.defaults import resolve_methods
 
-    return [(m.fit, m.dynamics) for m in resolve_methods(garment_ids, options.fit, options.dynamics)]
+    return [(m.fit, m.dynamics) for m in resolve_methods(garment_ids, options.fit, options.dynamics, outfit=len(garment_ids) > 1)]
 
 
 def describe(options: DrapeOptions, garment_ids: list[str]) -> str:
