@@ -231,8 +231,8 @@ def test_learned_canonical_keeps_the_one_size_garment_from_stretching_with_a_tal
     # the posed-space guard's pushes do not run (a lone canonical-space garment)
     assert "guard" not in learned.timings_ms and "repair" in learned.timings_ms
     # a garment without a fit regressor: a 4xx naming the option
-    with pytest.raises(MissingModelError, match="leggings") as err:
-        drape(body, far, motion, [catalog.get("leggings")], options.replace(fit="learned-canonical"), canonical=canonical)
+    with pytest.raises(MissingModelError, match="suittrousers") as err:
+        drape(body, far, motion, [catalog.get("suittrousers")], options.replace(fit="learned-canonical"), canonical=canonical)
     assert err.value.field == "/options/fit"
 
 

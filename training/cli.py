@@ -28,6 +28,7 @@ OPTIONS = {
     "lr": ("--lr", "Adam learning rate of the first phase"),
     "lr_final": ("--lr-final", "Adam learning rate after lr_drop of the budget"),
     "corner_fraction": ("--corner-fraction", "share of training windows on the 64 box corners of the shape bank (default: uniform over the bank)"),
+    "pin_waistband": ("--pin-waistband", "fit regressor: spring stiffness holding a bottom's waistband on the retarget fit, N/m (0: free)"),
     "basis": ("--basis", "output basis of the fit regressor: harmonics (ships in fit.onnx) or geodesic (rebuilt at runtime)"),
     "basis_size": ("--basis-size", "output basis size: harmonics, or the geodesic basis' nodes"),
     "clips": ("--clips", "training clips, comma-separated CMU ids (training.datasets: AMC or BVH_CLIPS)"),

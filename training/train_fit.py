@@ -34,6 +34,7 @@ from training.cli import run as run_cli
 from training.manifest import git_commit
 from training.models import FitRegressor
 from training.physics import TRAIN_K_COLLISION, ClothGeometry, body_signed_distances, energy_terms
+from training.reference import waistband_vertices
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ class FitConfig:
     # continuing a trained T-shirt or dress fit at 1e-3 or 3e-4 diverged after 200-1400 steps
     # (measured); the v3 T-shirt and jacket fits trained from scratch at 1e-3 -> 1e-4 in 10 min.
     fresh_candidates: bool = True  # re-select the collision candidates at the current prediction every step
+    pin_waistband: float = 0.0  # N/m: a spring per waistband vertex (training.reference.waistband_vertices) holding a bottom's waist on the retarget fit, as the newton reference pins it (0: free)
     exact_inside: bool = False  # collision loss: vertices inside the closed rest skin by the exact winding number pulled to their closest skin vertex (physics.collision_energy)
     init: str | None = None  # warm start: a fit.pt checkpoint to continue from (its wall time is added)
     seed: int = 0
@@ -151,6 +153,7 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
     BP, BN = torch.as_tensor(bank.body_points).to(device), torch.as_tensor(bank.body_normals).to(device)
     C = torch.as_tensor(bank.candidates.astype(np.int64)).to(device)
 
+    pinned = torch.as_tensor(waistband_vertices(asset) if config.pin_waistband > 0 else np.zeros(0, np.int64)).to(device)
     budget_s = config.minutes * 60.0
     t0 = time.perf_counter()
     step, history = 0, []
@@ -164,7 +167,9 @@ def train_fit(config: FitConfig, smoke: bool = False, out_dir: Path = CHECKPOINT
         cand = candidates(BP[idx], x, config.candidates, None if trees is None else [trees[i] for i in idx_np]) if config.fresh_candidates else C[idx]
         inside = exact_inside(bank, body.faces, idx_np, x) if config.exact_inside else None
         terms = energy_terms(train_cloth, x, BP[idx], BN[idx], cand, inside=inside)
-        loss = sum(terms.values()).mean()  # L_static, eq. 5.7
+        if len(pinned):  # 0.5 k |R_G|^2 at the waistband: the reference's kinematic waist, J
+            terms["pin"] = 0.5 * config.pin_waistband * (x[:, pinned] - X0[idx][:, pinned]).pow(2).sum((1, 2))
+        loss = sum(terms.values()).mean()  # L_static, eq. 5.7 (+ the waistband's springs)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
