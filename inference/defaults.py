@@ -245,6 +245,7 @@ def resolve_methods(garment_ids: Sequence[str], fit: str | None = None, dynamics
         raise InputValueError("/options/dynamics", f"{dynamics!r}, expected one of {list(DYNAMICS_MODES)} or null")
     if (fit is None or dynamics is None) and defaults is None:
         defaults = default_methods()
+
     def layered(m: Method) -> Method:
         return OUTFIT_FIT.get(m.fit, m) if outfit and fit is None else m
 

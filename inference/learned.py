@@ -65,7 +65,7 @@ class LearnedGarment:
     fit_basis: np.ndarray | None = None
 
     @classmethod
-    def load(cls, directory: Path | str, threads: int = 1, garment=None) -> "LearnedGarment":
+    def load(cls, directory: Path | str, threads: int = 1, garment: GarmentAsset | None = None) -> "LearnedGarment":
         """Load ``directory/{model.json, fit.onnx[, wrinkle.onnx]}``; ``garment`` (a
         ``GarmentAsset``) is needed where the fit ships a geodesic basis to rebuild."""
         directory = Path(directory)
@@ -193,8 +193,7 @@ class LearnedModels:
                 self._loaded[garment_id] = LearnedGarment.load(self.models_dir / garment_id, self.threads, self._garment(garment_id))
             return self._loaded[garment_id]
 
-
-    def _garment(self, garment_id: str):
+    def _garment(self, garment_id: str) -> GarmentAsset | None:
         """The garment's asset where its fit ships a geodesic basis (rebuilt from the template), else None."""
         meta = json.loads((self.models_dir / garment_id / "model.json").read_text())
         return GarmentAsset.load(self.garments_dir / garment_id) if meta["fit"].get("basis") else None
