@@ -16,7 +16,7 @@ model (128 x 5,148 float32 for a T-shirt: 2.6 MB of a 2.9 MB ``fit.onnx``); they
 recomputed where they are used, because an eigensolver returns any rotation of a near-degenerate
 eigenspace. Phi depends continuously on the template, the node ids and sigma, so the model ships
 only those (``model.json``) and its MLP's weights. Measured on the T-shirt's shipped R_G (200
-random adult bodies, least squares onto Phi): K = 256, sigma = covering radius (4.2 cm) leaves
+random adult bodies, least squares onto Phi; ``python tools/fit_basis_check.py projection``): K = 256, sigma = covering radius (4.2 cm) leaves
 0.8 mm mean, 2.9 mm p99 of a 23 mm mean displacement; sigma = 0.5 / 1.5 / 2 radii or K = 128 /
 192 leave more.
 
