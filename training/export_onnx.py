@@ -36,6 +36,8 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
+from inference.fit_basis import geodesic_rbf_basis
+from inference.garment import GarmentAsset, GarmentCatalog
 from training.datasets import REPO_ROOT
 from training.manifest import git_commit
 from training.models import FitRegressor, WrinkleGRU, phenotype_box
@@ -119,7 +121,8 @@ class _FitCoefficients(nn.Module):
         return self.model.coefficients(phenotypes)
 
 
-def export_fit(model: FitRegressor, path: Path, record: dict, seed: int = 0, basis_spec: dict | None = None, asset=None) -> dict:
+def export_fit(model: FitRegressor, path: Path, record: dict, seed: int = 0, basis_spec: dict | None = None,
+               asset: GarmentAsset | None = None) -> dict:
     """fit.onnx + parity (B = 1 and 5); returns the model.json entry.
 
     basis_spec None: the ONNX holds the output basis and answers displacements (B, V, 3). A
@@ -136,8 +139,6 @@ def export_fit(model: FitRegressor, path: Path, record: dict, seed: int = 0, bas
     _add_metadata(path, _record_metadata(record))
     phi = None
     if basis_spec is not None:
-        from inference.fit_basis import geodesic_rbf_basis
-
         phi = geodesic_rbf_basis(asset.vertices, asset.edges, np.asarray(basis_spec["nodes"]), basis_spec["sigma_m"])
 
     def parity() -> float:
@@ -218,8 +219,6 @@ def export_garment(garment: str, checkpoints: Path = CHECKPOINT_DIR, out_dir: Pa
     """Export ``checkpoints/<garment>/{fit,wrinkle}.pt`` to ``out_dir/<garment>/``; returns model.json.
     A garment with no wrinkle checkpoint exports its fit alone (``"wrinkle": null``: fit 'learned'
     and 'learned-canonical' run, dynamics 'learned' outside the canonical space does not)."""
-    from inference.garment import GarmentCatalog
-
     suffix = "_smoke" if smoke else ""
     fit_path = checkpoints / garment / f"fit{suffix}.pt"
     fit, fit_record = load_fit(fit_path)

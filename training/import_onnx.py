@@ -31,6 +31,8 @@ import onnxruntime as ort
 import torch
 from onnx import numpy_helper
 
+from inference.fit_basis import geodesic_rbf_basis
+from inference.garment import GarmentCatalog
 from training.export_onnx import MODELS_DIR, PARITY_TOLERANCE_M, _random_phenotypes, _sha256
 from training.models import FitRegressor, OutputBasis, WrinkleGRU
 from training.train_fit import CHECKPOINT_DIR
@@ -66,9 +68,6 @@ def fit_checkpoint(model_dir: Path) -> dict:
     _, w = _initializers(path)
     spec, phi = entry.get("basis"), None
     if spec is not None:  # a geodesic basis: rebuilt from the template; the weights under "model.", float16 ones "_f16"
-        from inference.fit_basis import geodesic_rbf_basis
-        from inference.garment import GarmentCatalog
-
         asset = GarmentCatalog.load().get(model_dir.name)
         basis = geodesic_rbf_basis(asset.vertices, asset.edges, np.asarray(spec["nodes"]), spec["sigma_m"])
         w = {k.removeprefix("model.").removesuffix("_f16"): v for k, v in w.items()}
