@@ -334,16 +334,19 @@ def drape(
 
     if options.guard:
         margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
-        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights)
+        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights);
+        # its closest-triangle check only where a posed-space garment is in the request (an outfit of canonical
+        # garments has the final exact stage after the layers, and the same layers without the check)
         if len(garments) > 1 or not all(m.canonical for m in methods):
+            check = options.guard_check and not all(m.canonical for m in methods)
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
                 # against the neutral body, the pose its skinning transforms start from).
                 rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
                 plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
-                                         layer_weights=weights, body_weights=body.dense_weights, rings=options.guard_check,
+                                         layer_weights=weights, body_weights=body.dense_weights, rings=check,
                                          between_layers=False)
-                posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=options.guard_check)
+                posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=check)
             skin = plans.skin
             if len(garments) > 1:
                 with timer("layers"):  # each inner layer under the ones outside it (inference.layers)

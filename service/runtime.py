@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from inference import layers, repair, strain, winding
+from inference.guard import nearest
 from inference.asset_digest import AssetDigest
 from inference.batch import DrapeJob, concatenate_results, drape_many
 from inference.body import NEUTRAL_PHENOTYPES, PHENOTYPE_LABELS, BodyModel, BodyShape
@@ -170,6 +171,7 @@ class Runtime:
             repair.warm_up()  # the final stage's
             layers.warm_up()  # and the layer stage's
             strain.warm_up()  # and the compression limit's (learned canonical garments)
+            nearest.warm_up()  # and the guard's per-frame nearest body vertices
         runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
         log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",
                  runtime.assets.combined[:16])

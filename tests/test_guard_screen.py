@@ -52,3 +52,33 @@ def test_skin_candidates_are_the_nearest_of_another_bone():
         others = np.flatnonzero(bone != b)
         want = others[cKDTree(verts[others]).query(pts[rows], k=2)[1]]
         np.testing.assert_array_equal(np.sort(skin[rows], 1), np.sort(want, 1))
+
+
+def test_per_frame_nearest_equal_a_kd_tree_warm_and_cold():
+    # a moving sphere's vertices as the region, points around it: every frame's k nearest equal
+    # the KD-tree's (by distance), from a cold start, from the last frame's answers (warm), from
+    # answers of another region (a bound wider than COLD_RHO_M: cold again), and for points far
+    # outside the region's box
+    from inference.guard import nearest
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.12)
+    rng = np.random.default_rng(1)
+    F, S, N, k = 5, len(s.vertices), 400, 3
+    shift = np.cumsum(rng.normal(0, 0.01, (F, 3)), 0)
+    C3 = np.ascontiguousarray(np.moveaxis(s.vertices[None] + shift[:, None], 2, 0))  # (3, F, S)
+    region = np.flatnonzero(s.vertices[:, 2] > -0.05)
+    d = rng.normal(size=(N, 3))
+    base = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.1, 0.2, (N, 1))
+    base[:20] *= 10.0  # ~1-2 m away
+    P = np.ascontiguousarray(np.moveaxis(base[None] + shift[:, None], 2, 0).reshape(3, -1))
+    dyn = np.arange(0, N, 2)
+    for start in ("cold", "warm", "stale"):
+        prev = np.full((len(dyn), k), -1, np.int64)
+        if start != "cold":
+            prev[:] = rng.integers(0, len(region), prev.shape) if start == "stale" else 0
+        found = nearest.frames_knn(C3, region, P, dyn, N, 0, F, k, nearest.CELL_M, nearest.COLD_RHO_M, prev)
+        for f in range(F):
+            pts, q = C3[:, f, region].T, P[:, f * N + dyn].T
+            ref = cKDTree(pts).query(q, k=k)[0]
+            np.testing.assert_allclose(np.linalg.norm(pts[found[f]] - q[:, None], axis=-1), ref, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(prev, found[-1])  # the state carried to the next block

@@ -46,12 +46,12 @@ def away_from_self_intersections(per_face: np.ndarray, inner: np.ndarray, inner_
     return out
 
 
-def report(outfit: list[str], case, body: BodyModel, catalog: GarmentCatalog) -> str:
+def report(outfit: list[str], case, body: BodyModel, catalog: GarmentCatalog, collisions: str = "exact") -> str:
     garments = [catalog.get(g) for g in outfit]
     shape = body.shape(BODIES[case.body][None])
     m = clip_motion(body, shape, load_clip(case.clip, body), case.start + case.frames)
     motion = PoseSequence(m.rotations[case.start:], m.translation[case.start:], m.fps)
-    r = drape(body, shape, motion, garments, DrapeOptions(lift_arms=False))
+    r = drape(body, shape, motion, garments, DrapeOptions(lift_arms=False, collisions=collisions))
     V = [g.vertices for g in r.garments]
     lines = [f"{case.name:28s} {'+'.join(outfit)} ({', '.join(g.method.fit for g in r.garments)}): "
              f"layers {r.timings_ms.get('layers', 0.0) / motion.num_frames:.1f} ms/frame, inside the body "
@@ -73,11 +73,12 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--split", default="validation", choices=sorted(SPLITS))
     ap.add_argument("--outfit", action="append", help="garment ids, innermost first, comma-separated (repeatable)")
+    ap.add_argument("--collisions", default="exact", help="the request's collision level (DrapeOptions.collisions)")
     args = ap.parse_args(argv)
     body, catalog = BodyModel.load(), GarmentCatalog.load()
     for outfit in args.outfit or DEFAULT_OUTFITS:
         for case in SPLITS[args.split]:
-            print(report(outfit.split(","), case, body, catalog), flush=True)
+            print(report(outfit.split(","), case, body, catalog, args.collisions), flush=True)
 
 
 if __name__ == "__main__":

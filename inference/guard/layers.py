@@ -13,7 +13,7 @@ import numpy as np
 
 from inference.errors import InputShapeError, InputValueError
 from inference.guard.constants import DEFAULT_CANDIDATES, DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M, GUARD_ITERATIONS, SKIN_PLAN_K
-from inference.guard.plan import GuardPlan
+from inference.guard.plan import GuardPlan, collider_topology
 from inference.guard.push import _check_frames, _planes, _push_planes
 from inference.mesh import major_components
 
@@ -90,7 +90,11 @@ class LayerPlans:
         ]
         inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] if between_layers else []
                  for i in range(len(layers_rest))]
-        return cls(body=body, inner=inner, skin=major_components(body_faces, np.shape(body_rest)[-2]))
+        Vb = np.shape(body_rest)[-2]
+        _, boundary, usable = collider_topology(body_faces, Vb)
+        skin = np.zeros(Vb, bool)
+        skin[usable] = True  # the body's major components (closed: no boundary)
+        return cls(body=body, inner=inner, skin=skin if not boundary.any() else major_components(body_faces, Vb))
 
 
 def guard_layers(

@@ -9,9 +9,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from inference.errors import InputShapeError, InputValueError
+from inference.guard import nearest
 from inference.guard.constants import (
     DEFAULT_MARGIN_M,
     DYNAMIC_K,
@@ -150,6 +150,8 @@ def _push_planes(
     dynamic = plan is not None and plan.dynamic_points is not None
     step = max(1, _BLOCK_ELEMENTS // max(N * (k + (DYNAMIC_K if dynamic else 0)), 1))
     out = np.empty((3, BT, N), np.float32)
+    # the dynamic points' nearest region vertices in the last frame done (none yet)
+    prev = np.full((len(plan.dynamic_points), int(min(DYNAMIC_K, len(plan.dynamic_region)))), -1, np.int64) if dynamic else None
     for f0 in range(0, BT, step):  # blocks of frames, not a loop per frame
         f1 = min(BT, f0 + step)
         Pb = P[:, f0:f1].reshape(3, -1)
@@ -158,7 +160,7 @@ def _push_planes(
         acr = None if across is None else np.moveaxis(across, 2, 0)[:, batch_of_frame[f0:f1] if across.shape[0] > 1 else np.zeros(f1 - f0, np.intp)].reshape(k, -1)
         s_min = _screen_planes(Pb, Nrm, offset, flat)
         if dynamic:
-            extra = _dynamic_candidates(Pb, C, flat, plan, f0, f1)
+            extra = _dynamic_candidates(Pb, C, flat, plan, f0, f1, prev)
             flat = np.concatenate([flat, extra], 0)
             s_min = np.minimum(s_min, _screen_planes(Pb, Nrm, offset, extra))
             if acr is not None:
@@ -346,23 +348,25 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
     return out
 
 
-def _dynamic_candidates(Pb: np.ndarray, C: np.ndarray, flat: np.ndarray, plan: GuardPlan, f0: int, f1: int) -> np.ndarray:
+def _dynamic_candidates(Pb: np.ndarray, C: np.ndarray, flat: np.ndarray, plan: GuardPlan, f0: int, f1: int,
+                        prev: np.ndarray) -> np.ndarray:
     """Per-frame nearest candidates of frames f0..f1 (one block of ``_push_planes``): for the
-    plan's dynamic points, the DYNAMIC_K nearest of its dynamic region in that frame (a KD-tree
-    per frame, C code; the region is a few thousand vertices); every other point repeats its
-    first plan candidate.
+    plan's dynamic points, the DYNAMIC_K nearest of its dynamic region in that frame (exact, a
+    grid per frame bounded by each point's answer in the frame before: ``inference.guard.nearest``);
+    every other point repeats its first plan candidate.
 
-    Pb (3, L) the block's points (L = F * N), C (3, BT*S), flat (k, L) plan candidates;
-    returns (DYNAMIC_K, L) flat indices into C.
+    Pb (3, L) the block's points (L = F * N), C (3, BT*S), flat (k, L) plan candidates; prev
+    (Nd, k) int64 the dynamic points' answers in the frame before f0 (positions in the region,
+    -1: none), updated to frame f1 - 1's; returns (DYNAMIC_K, L) flat indices into C.
     """
     S = len(plan.collider_ids)
     N = plan.candidates.shape[1]
     dyn, region = plan.dynamic_points, plan.dynamic_region
-    k = int(min(DYNAMIC_K, len(region)))
+    k = prev.shape[1]
     C3 = C.reshape(3, -1, S)
     extra = np.repeat(flat[:1], k, axis=0)
-    for i, f in enumerate(range(f0, f1)):  # a KD-tree per frame: the search itself runs in C
-        tree = cKDTree(C3[:, f, region].T)
-        col = i * N + dyn
-        extra[:, col] = f * S + region[tree.query(Pb[:, col].T, k=k)[1].reshape(len(dyn), k)].T
+    found = nearest.frames_knn(C3, np.ascontiguousarray(region, np.int64), np.ascontiguousarray(Pb, np.float64),
+                               np.ascontiguousarray(dyn, np.int64), N, f0, f1, k, nearest.CELL_M, nearest.COLD_RHO_M, prev)
+    for i, f in enumerate(range(f0, f1)):  # (F, Nd, k) positions in the region
+        extra[:, i * N + dyn] = f * S + region[found[i]].T
     return extra
