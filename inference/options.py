@@ -71,7 +71,8 @@ class DrapeOptions(BaseModel):
         description="collision handling after skinning, each level adding a stage: 'off' none; 'push' the guard's push out "
         "of the body along the nearest body vertex's normal, layer by layer (an outfit of several garments then has each "
         "inner garment sink under the ones outside it); 'check' the push, then each nearby vertex "
-        "checked against the closest body triangle (up to ~4x fewer vertices left inside, ~3-4 ms per garment-frame); "
+        "checked against the closest body triangle (up to ~4x fewer vertices left inside, ~3-4 ms per garment-frame; "
+        "not in an outfit whose garments all run fit 'canonical', where the final stage follows at every level but 'off'); "
         "'exact' (default) the check, then the exact winding-number test of every vertex against the posed body, moving "
         "any still inside to the nearest outside skin point (~7 ms per garment-frame): no vertex inside the body. "
         "(API 0.2's guard / guard_check / guard_exact booleans are still accepted and mapped to a level.)",

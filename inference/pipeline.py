@@ -334,18 +334,20 @@ def drape(
 
     if options.guard:
         margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
-        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights);
-        # its closest-triangle check only where a posed-space garment is in the request (an outfit of canonical
-        # garments has the final exact stage after the layers, and the same layers without the check)
+        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights).
+        # In an outfit of canonical garments (the final exact stage follows at every level), only the outer layers
+        # are pushed, without the closest-triangle check: the layers come out as well ordered as with the innermost
+        # pushed and every layer checked (docs/benchmarks.md, "Outfits: the guard's cost"), at ~40 % of the cost
         if len(garments) > 1 or not all(m.canonical for m in methods):
-            check = options.guard_check and not all(m.canonical for m in methods)
+            all_canonical = all(m.canonical for m in methods)
+            check = options.guard_check and not all_canonical
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
                 # against the neutral body, the pose its skinning transforms start from).
                 rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
                 plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
                                          layer_weights=weights, body_weights=body.dense_weights, rings=check,
-                                         between_layers=False)
+                                         between_layers=False, guarded=[i > 0 or not all_canonical for i in range(len(garments))])
                 posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=check)
             skin = plans.skin
             if len(garments) > 1:

@@ -54,11 +54,11 @@ def guard(
 class LayerPlans:
     """Plans for a stack of garments, innermost first.
 
-    body  : one ``GuardPlan`` per layer against the body
+    body  : one ``GuardPlan`` per layer against the body (None: the layer is not guarded)
     inner : inner[i][j] is the plan of layer i against inner layer j < i
     """
 
-    body: list[GuardPlan]
+    body: list[GuardPlan | None]
     inner: list[list[GuardPlan]]
     skin: np.ndarray | None = None  # (Vb,) bool: the body's major components (``inference.repair``)
 
@@ -74,18 +74,25 @@ class LayerPlans:
         body_weights: np.ndarray | None = None,
         rings: bool = True,
         between_layers: bool = True,
+        guarded: Sequence[bool] | None = None,
     ) -> "LayerPlans":
         """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3);
         layer_weights / body_weights : optional LBS weights (N_i, J) / (Vb, J) for
         skinning-aware body candidates (GuardPlan.build's ``skin``); rings : the body plans keep
         the triangles of the closest-triangle check (not needed with ``guard_layers(check=False)``);
         between_layers : the plans of each layer against the inner ones (False: the layers are
-        guarded against the body only, and ``inference.layers`` orders them)."""
+        guarded against the body only, and ``inference.layers`` orders them); guarded : per
+        layer, whether it gets a body plan (default all; ``guard_layers`` passes the others
+        through unchanged)."""
         if len(layers_rest) != len(layer_faces):
             raise InputValueError("layer_faces", f"expected {len(layers_rest)} face arrays, got {len(layer_faces)}")
+        guarded = [True] * len(layers_rest) if guarded is None else list(guarded)
+        if len(guarded) != len(layers_rest):
+            raise InputValueError("guarded", f"expected {len(layers_rest)} flags, got {len(guarded)}")
         body = [
             GuardPlan.build(g, body_rest, body_faces, k if layer_weights is None else SKIN_PLAN_K,
                             skin=None if layer_weights is None else (layer_weights[i], body_weights), k_skin=2, rings=rings)
+            if guarded[i] else None
             for i, g in enumerate(layers_rest)
         ]
         inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] if between_layers else []
@@ -118,7 +125,8 @@ def guard_layers(
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
-        p = guard(p, body, plans.body[i], body_margin_m + i * layer_gap_m, iterations=GUARD_ITERATIONS, check=check)
+        if plans.body[i] is not None:  # (a layer built without a plan passes through)
+            p = guard(p, body, plans.body[i], body_margin_m + i * layer_gap_m, iterations=GUARD_ITERATIONS, check=check)
         for j in range(len(plans.inner[i])):  # none when the plans were built without between_layers
             p = guard(p, out[j], plans.inner[i][j], layer_gap_m)
         out.append(p)
