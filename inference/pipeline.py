@@ -29,7 +29,8 @@ self-supervised with the SNUG losses):
 - dynamics 'learned': + R_L(beta, gamma_1..t) per frame, gamma = motion_descriptor (one ORT call)
 - dynamics 'none'   : no per-frame displacement
 - layers (outfits of more than one garment, with the guard on): the guard pushes each layer out
-  of the body only (layer i with margin + i * layer_gap), then ``inference.layers`` pulls each
+  of the body only (layer i with margin + i * layer_gap; in an outfit of canonical garments the
+  outer layers alone, without the closest-triangle check), then ``inference.layers`` pulls each
   inner layer back under the layers outside it along its body-anchor segments; the exact repair
   runs last, on every layer
 - arms (``lift_arms``): the upper arms are abducted out of the torso where the body shape sinks
