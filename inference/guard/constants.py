@@ -48,6 +48,3 @@ REFINE_CANDIDATES = 3
 REFINE_PASSES = 2
 # Extra candidates are looked up this far along the rest normal (the other side of a crease).
 DEFAULT_AHEAD_M = 0.015
-# Skin-aware plans look for the nearest collider vertices of another bone among this many nearest
-# ones first (a KD-tree per bone only for the points where fewer than k_skin are there).
-_SKIN_SCAN = 32
