@@ -6,7 +6,8 @@ Run: ``python bench/load_drape.py`` (defaults: concurrency 1 4 16 64, 12 s per l
 on (max_batch 8) and off (max_batch 1), then 20 s at 2x the measured capacity). Prints Markdown
 tables (copied into docs/benchmarks.md, section "Serving", with the machine description).
 
-Requests: 30 frames (``--frames``; 1 s of the 'dance' clip at 30 fps from a random start), one garment (tshirt),
+Requests: 30 frames (``--frames``; 1 s of the 'dance' clip at 30 fps from a random start), one garment (tshirt;
+``--garments``: an outfit, innermost first; every garment's frames count),
 the default neutral body, npz, include_body false, guard on; every request is distinct (the
 cache is off too: TRYON_CACHE_MAX_BYTES=0), all share body, garment and options, so the batcher
 may merge them. Throughput is garment-frames per second of successful responses.
@@ -31,6 +32,7 @@ import httpx
 
 REPO = Path(__file__).resolve().parents[1]
 FRAMES = 30
+GARMENTS = ["tshirt"]
 
 
 # extra request options for every request (--options)
@@ -42,7 +44,7 @@ def body(rng: random.Random, frames: int | None = None, guard: bool = True) -> d
     duration_s = (frames - 1) / 30.0 if frames > 1 else 0.01  # a clip's duration must be > 0; 0.01 s is one frame
     return {
         "motion": {"type": "clip", "clip": "dance", "start_s": round(rng.uniform(0.0, 9.0), 3), "duration_s": duration_s},
-        "garments": [{"id": "tshirt"}], "format": "npz", "options": {"include_body": False, "guard": guard, **EXTRA_OPTIONS},
+        "garments": [{"id": g} for g in GARMENTS], "format": "npz", "options": {"include_body": False, "guard": guard, **EXTRA_OPTIONS},
     }
 
 
@@ -107,7 +109,7 @@ class Run:
     def row(self, label: str) -> str:
         ok = sorted(self.latencies_ok)
         q = (lambda p: ok[min(len(ok) - 1, int(p * len(ok)))] * 1e3 if ok else float("nan"))  # noqa: E731
-        gfs = len(ok) * FRAMES / self.wall_s
+        gfs = len(ok) * FRAMES * len(GARMENTS) / self.wall_s
         err = sum(self.errors.values()) + self.timeouts
         return (f"| {label} | {len(ok)} | {gfs:.0f} | {q(0.5):.0f} | {q(0.95):.0f} | {q(0.99):.0f} | {len(self.latencies_503)} | {err} | "
                 f"{self.batch_mean:.1f} | {self.rss_peak_mb:.0f} |")
@@ -204,7 +206,7 @@ def machine() -> str:
 
 
 def main() -> None:
-    global FRAMES
+    global FRAMES, GARMENTS
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--levels", type=int, nargs="+", default=[1, 4, 16, 64])
     ap.add_argument("--duration", type=float, default=12.0, help="seconds per concurrency level")
@@ -216,10 +218,12 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=60.0, help="client timeout, seconds")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames", type=int, default=30, help="frames per request (1: the single-frame latency)")
+    ap.add_argument("--garments", default="tshirt", help="garment ids of every request, innermost first, comma-separated")
     ap.add_argument("--options", type=json.loads, default={}, help='extra request options, JSON (e.g. \'{"guard_check": false}\')')
     args = ap.parse_args()
     EXTRA_OPTIONS.update(args.options)
     FRAMES = args.frames
+    GARMENTS = args.garments.split(",")
 
     print(f"machine: {machine()}\n")
     print("\n".join(HEADER))
