@@ -82,3 +82,17 @@ def test_per_frame_nearest_equal_a_kd_tree_warm_and_cold():
             ref = cKDTree(pts).query(q, k=k)[0]
             np.testing.assert_allclose(np.linalg.norm(pts[found[f]] - q[:, None], axis=-1), ref, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(prev, found[-1])  # the state carried to the next block
+
+
+def test_the_warm_up_compiles_the_per_frame_search_for_the_guards_coordinates():
+    # a worker warms the kernel at start-up (service.runtime); a signature it missed would compile
+    # (~1 s) inside the first outfit's request: the guard's planes are float32
+    import numba
+
+    from inference.guard import nearest
+
+    s = trimesh.creation.icosphere(subdivisions=1)
+    plan = GuardPlan.build(s.vertices[None].astype(np.float32), s.vertices[None].astype(np.float32), s.faces)
+    C, _ = plan.collider_planes(s.vertices[None, None].astype(np.float32))
+    nearest.warm_up()
+    assert numba.typeof(np.ascontiguousarray(C.reshape(3, 1, -1))) in [sig[0] for sig in nearest.frames_knn.signatures]

@@ -166,7 +166,9 @@ def frames_knn(C3, region, P, dyn, N, f0, f1, k, h, cold_rho, prev):
 
 
 def warm_up() -> None:
-    """Compile the kernel (or load numba's cache) on a tetrahedron's vertices, warm and cold."""
-    C3 = np.ascontiguousarray(np.eye(3)[:, None, :].repeat(2, 1))  # (3, 2 frames, 3 vertices)
-    prev = np.full((1, 2), -1, np.int64)
-    frames_knn(C3, np.arange(3), np.zeros((3, 2)), np.zeros(1, np.int64), 1, 0, 2, 2, CELL_M, COLD_RHO_M, prev)
+    """Compile the kernel (or load numba's cache) on three vertices, cold and warm, for the guard's
+    float32 body coordinates (``GuardPlan.collider_planes``) and float64 ones."""
+    for dtype in (np.float32, np.float64):
+        C3 = np.ascontiguousarray(np.eye(3, dtype=dtype)[:, None, :].repeat(2, 1))  # (3, 2 frames, 3 vertices)
+        prev = np.full((1, 2), -1, np.int64)
+        frames_knn(C3, np.arange(3), np.zeros((3, 2)), np.zeros(1, np.int64), 1, 0, 2, 2, CELL_M, COLD_RHO_M, prev)
