@@ -1,12 +1,14 @@
 """Per-stage cost of a whole drape (``inference.pipeline.drape``), an outfit or one garment.
 
-    python bench/bench_outfit.py [--outfit tshirt,jacket] [--body neutral] [--frames 30] [--repeats 3] [--collisions exact]
+    python bench/bench_outfit.py [--outfit tshirt,jacket] [--body neutral] [--frames 30] [--repeats 3] [--collisions exact] [--cold]
 
 One thread (BLAS and numba 1), frames 30.. of the 02_02 walk (validation clip) as one request,
 each garment's default method (an outfit's, ``inference.defaults``), the service's options but
 the arm lift (``lift_arms`` off: the clip is retargeted as the judge does). The fastest of
 ``--repeats`` runs after one warm-up; prints a markdown table of its stages
-(``DrapeResult.timings_ms``), ms per frame (an outfit-frame: all its garments).
+(``DrapeResult.timings_ms``), ms per frame (an outfit-frame: all its garments). The guard's plans of
+static rest forms are kept between requests (``inference.guard.layers``: the same body with another
+motion); ``--cold`` empties them before every run (a body or garment the process has not seen).
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from inference.body import BodyModel  # noqa: E402
 from inference.garment import GarmentCatalog  # noqa: E402
+from inference.guard.layers import _PLANS  # noqa: E402
 from inference.options import DrapeOptions  # noqa: E402
 from inference.pipeline import PoseSequence, drape  # noqa: E402
 from training.protocol import BODIES, clip_motion, load_clip  # noqa: E402
@@ -38,6 +41,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--collisions", default="exact")
+    ap.add_argument("--cold", action="store_true", help="no guard plan kept from an earlier run")
     args = ap.parse_args(argv)
     body, catalog = BodyModel.load(), GarmentCatalog.load()
     shape = body.shape(np.asarray(BODIES[args.body], np.float32)[None])
@@ -48,6 +52,8 @@ def main(argv: list[str] | None = None) -> None:
     drape(body, shape, motion, garments, options)  # compiled kernels and caches warm
     best = None
     for _ in range(args.repeats):
+        if args.cold:
+            _PLANS.clear()
         t = time.perf_counter()
         r = drape(body, shape, motion, garments, options)
         wall = time.perf_counter() - t
@@ -56,7 +62,8 @@ def main(argv: list[str] | None = None) -> None:
     wall, r = best
     T = motion.num_frames
     methods = ", ".join(f"{g.asset.id} {g.method.fit}" for g in r.garments)
-    print(f"{args.outfit} ({methods}), {T} frames of 02_02, {args.body} body, collisions {args.collisions}, best of {args.repeats}\n")
+    print(f"{args.outfit} ({methods}), {T} frames of 02_02, {args.body} body, collisions {args.collisions}, best of {args.repeats}"
+          f"{', plans built every run' if args.cold else ''}\n")
     print("| stage | ms per frame |\n|---|---|")
     for name, ms in r.timings_ms.items():
         if ms / T >= 0.005:

@@ -344,11 +344,14 @@ def drape(
             check = options.guard_check and not all_canonical
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
-                # against the neutral body, the pose its skinning transforms start from).
+                # against the neutral body, the pose its skinning transforms start from). A plan is
+                # kept for the next request where the rest form does not follow the motion (every
+                # fit but a learned canonical model's, whose plan is built on its frames' mean form).
                 rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
                 plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
                                          layer_weights=weights, body_weights=body.dense_weights, rings=check,
-                                         between_layers=False, guarded=[i > 0 or not all_canonical for i in range(len(garments))])
+                                         between_layers=False, guarded=[i > 0 or not all_canonical for i in range(len(garments))],
+                                         reuse=[not (m.fit == "canonical" and m.dynamics == "learned") for m in methods])
                 posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=check)
             skin = plans.skin
             if len(garments) > 1:

@@ -248,3 +248,21 @@ def test_a_layer_without_a_body_plan_passes_through_the_guard():
     out = guard_layers([inner[None, None], outer[None, None]], body[None, None], plans)
     np.testing.assert_array_equal(out[0][0, 0], inner)
     assert (np.linalg.norm(out[1][0, 0], axis=1) > 1.0).all()
+
+
+def test_a_reused_body_plan_comes_back_only_for_the_same_rest_form_and_body():
+    from inference.guard import layers as guard_layers_module
+
+    s = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    body = s.vertices.astype(np.float32)[None]
+    shirt = (s.vertices * 1.01).astype(np.float32)[None]
+    first = LayerPlans.build([shirt], [s.faces], body, s.faces, reuse=[True]).body[0]
+    assert LayerPlans.build([shirt.copy()], [s.faces], body.copy(), s.faces, reuse=[True]).body[0] is first  # same contents
+    fresh = LayerPlans.build([shirt], [s.faces], body, s.faces).body[0]  # not reused: built again, equal
+    assert fresh is not first
+    np.testing.assert_array_equal(fresh.candidates, first.candidates)
+    moved = shirt.copy()
+    moved[0, 0, 0] += 1e-3
+    assert LayerPlans.build([moved], [s.faces], body, s.faces, reuse=[True]).body[0] is not first  # another rest form
+    assert LayerPlans.build([shirt], [s.faces], body * 1.01, s.faces, reuse=[True]).body[0] is not first  # another body
+    assert len(guard_layers_module._PLANS) <= guard_layers_module.PLAN_CACHE_ENTRIES

@@ -6,6 +6,9 @@ Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -50,6 +53,41 @@ def guard(
     return np.moveaxis(out.reshape(3, B, T, N), 0, -1)
 
 
+# Body plans kept per process for ``LayerPlans.build(reuse=)``: a shopper's body comes back with
+# other motions and outfits, and a static garment's plan on it (built from its rest form) is the
+# same; ~60 ms to build for the jacket on the anny body (docs/benchmarks.md, "Outfits: the guard's cost").
+PLAN_CACHE_ENTRIES = 16
+_PLANS: OrderedDict = OrderedDict()
+_PLANS_LOCK = threading.Lock()
+
+
+def _digest(a: np.ndarray) -> tuple:
+    """Content key of an array: 16 bytes of BLAKE2b, its dtype and shape (~0.1 ms for 100 KB)."""
+    a = np.ascontiguousarray(a)
+    return hashlib.blake2b(a.view(np.uint8).reshape(-1), digest_size=16).digest(), a.dtype.str, a.shape
+
+
+def _reused_body_plan(points: np.ndarray, body_rest: np.ndarray, body_faces: np.ndarray, k: int,
+                      skin: tuple[np.ndarray, np.ndarray] | None, rings: bool) -> GuardPlan:
+    """``GuardPlan.build`` of a garment's rest form against the body, kept (LRU, PLAN_CACHE_ENTRIES)
+    under the contents of the points and the body's rest vertices and the identities of the faces
+    and the skinning weights (model arrays, never changed in place; the entry holds them, so that
+    their ids are not reused while it lives)."""
+    held = (body_faces,) + (tuple(skin) if skin is not None else ())
+    key = (_digest(points), _digest(body_rest), tuple(id(a) for a in held), k, rings)
+    with _PLANS_LOCK:
+        hit = _PLANS.get(key)
+        if hit is not None:
+            _PLANS.move_to_end(key)
+            return hit[1]
+    plan = GuardPlan.build(points, body_rest, body_faces, k, skin=skin, k_skin=2, rings=rings)
+    with _PLANS_LOCK:
+        _PLANS[key] = (held, plan)
+        while len(_PLANS) > PLAN_CACHE_ENTRIES:
+            _PLANS.popitem(last=False)
+    return plan
+
+
 @dataclass(frozen=True)
 class LayerPlans:
     """Plans for a stack of garments, innermost first.
@@ -75,6 +113,7 @@ class LayerPlans:
         rings: bool = True,
         between_layers: bool = True,
         guarded: Sequence[bool] | None = None,
+        reuse: Sequence[bool] | None = None,
     ) -> "LayerPlans":
         """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3);
         layer_weights / body_weights : optional LBS weights (N_i, J) / (Vb, J) for
@@ -83,18 +122,26 @@ class LayerPlans:
         between_layers : the plans of each layer against the inner ones (False: the layers are
         guarded against the body only, and ``inference.layers`` orders them); guarded : per
         layer, whether it gets a body plan (default all; ``guard_layers`` passes the others
-        through unchanged)."""
+        through unchanged); reuse : per layer, whether its body plan may come from (and go to) the
+        process's plans of earlier requests (a garment whose rest form does not follow the
+        motion: the same rest form and body give the same plan; default none)."""
         if len(layers_rest) != len(layer_faces):
             raise InputValueError("layer_faces", f"expected {len(layers_rest)} face arrays, got {len(layer_faces)}")
         guarded = [True] * len(layers_rest) if guarded is None else list(guarded)
         if len(guarded) != len(layers_rest):
             raise InputValueError("guarded", f"expected {len(layers_rest)} flags, got {len(guarded)}")
-        body = [
-            GuardPlan.build(g, body_rest, body_faces, k if layer_weights is None else SKIN_PLAN_K,
-                            skin=None if layer_weights is None else (layer_weights[i], body_weights), k_skin=2, rings=rings)
-            if guarded[i] else None
-            for i, g in enumerate(layers_rest)
-        ]
+        reuse = [False] * len(layers_rest) if reuse is None else list(reuse)
+        if len(reuse) != len(layers_rest):
+            raise InputValueError("reuse", f"expected {len(layers_rest)} flags, got {len(reuse)}")
+        body = []
+        for i, g in enumerate(layers_rest):
+            kk, skin = (k, None) if layer_weights is None else (SKIN_PLAN_K, (layer_weights[i], body_weights))
+            if not guarded[i]:
+                body.append(None)
+            elif reuse[i]:
+                body.append(_reused_body_plan(g, body_rest, body_faces, kk, skin, rings))
+            else:
+                body.append(GuardPlan.build(g, body_rest, body_faces, kk, skin=skin, k_skin=2, rings=rings))
         inner = [[GuardPlan.build(layers_rest[i], layers_rest[j], layer_faces[j], k) for j in range(i)] if between_layers else []
                  for i in range(len(layers_rest))]
         Vb = np.shape(body_rest)[-2]
