@@ -338,7 +338,7 @@ def drape(
         # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights).
         # In an outfit of canonical garments (the final exact stage follows at every level), only the outer layers
         # are pushed, without the closest-triangle check: the layers come out as well ordered as with the innermost
-        # pushed and every layer checked (docs/benchmarks.md, "Outfits: the guard's cost"), at ~40 % of the cost
+        # pushed and every layer checked (docs/benchmarks.md, "Outfits: the guard's cost"), at about half the cost
         if len(garments) > 1 or not all(m.canonical for m in methods):
             all_canonical = all(m.canonical for m in methods)
             check = options.guard_check and not all_canonical
