@@ -137,10 +137,16 @@ def test_learned_canonical_frames_are_decoded_per_frame_and_end_outside_the_body
     X, _ = canonical.frames(catalog.get("tshirt"), shape.phenotypes, r_gamma(motion), [8])
     assert np.linalg.norm(X[1:] - X[:-1], axis=-1).max() > 1e-4
     assert canonical.diffused.sdf(X).min() > 0.003 - 5e-4  # pushed out to the garment's margin
-    # in chunks, the regressor's state carried: the same frames
-    parts = [p.garments[0].vertices for _, p in drape_chunks(body, shape, motion, [catalog.get("tshirt")], options, chunk_frames=3,
+    # in chunks, the regressor's state carried: the same frames (before the final stage, whose
+    # discrete choices, inside or not and which target is nearest, may flip for a vertex at a tie
+    # when the carried state differs from the whole sequence's by float rounding: seen once in CI,
+    # one vertex of 20,592 moved 0.6 mm)
+    raw = options.replace(collisions="off")
+    whole = drape(body, shape, motion, [catalog.get("tshirt")], raw, canonical=canonical).garments[0].vertices
+    parts = [p.garments[0].vertices for _, p in drape_chunks(body, shape, motion, [catalog.get("tshirt")], raw, chunk_frames=3,
                                                             canonical=canonical)]
-    np.testing.assert_allclose(np.concatenate(parts), v, atol=1e-4)
+    np.testing.assert_allclose(np.concatenate(parts), whole, atol=1e-4)
+    assert np.linalg.norm(whole - v, axis=-1).max() > 0  # the final stage moved something there
     # a garment without a learned canonical model is refused, naming the field
     with pytest.raises(UnknownAssetError) as e:
         drape(body, shape, motion, [catalog.get("jacket")], options, canonical=canonical)
