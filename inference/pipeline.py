@@ -29,8 +29,8 @@ self-supervised with the SNUG losses):
 - dynamics 'learned': + R_L(beta, gamma_1..t) per frame, gamma = motion_descriptor (one ORT call)
 - dynamics 'none'   : no per-frame displacement
 - layers (outfits of more than one garment, with the guard on): the guard pushes each layer out
-  of the body only (layer i with margin + i * layer_gap; in an outfit of canonical garments the
-  outer layers alone, without the closest-triangle check), then ``inference.layers`` pulls each
+  of the body only (layer i with margin + i * layer_gap; in an outfit of canonical garments
+  without the closest-triangle check), then ``inference.layers`` pulls each
   inner layer back under the layers outside it along its body-anchor segments; the exact repair
   runs last, on every layer
 - arms (``lift_arms``): the upper arms are abducted out of the torso where the body shape sinks
@@ -335,10 +335,11 @@ def drape(
 
     if options.guard:
         margins = [options.margin_m + i * options.layer_gap_m for i in range(len(garments))]  # each layer's body margin
-        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights).
-        # In an outfit of canonical garments (the final exact stage follows at every level), only the outer layers
-        # are pushed, without the closest-triangle check: the layers come out as well ordered as with the innermost
-        # pushed and every layer checked (docs/benchmarks.md, "Outfits: the guard's cost"), at about half the cost
+        # the guard's push out of the body: every posed-space garment, and every outfit (it sets the layers' heights,
+        # and holds the innermost off the skin: unpushed, the T-shirt under the jacket crossed the skin 3-6x more on 02_02).
+        # Its closest-triangle check only where a posed-space garment is in the request: an outfit of canonical
+        # garments has the final exact stage after the layers at every level, and the same layer order and skin
+        # crossings without the check (docs/benchmarks.md, "Outfits: the guard's cost")
         if len(garments) > 1 or not all(m.canonical for m in methods):
             all_canonical = all(m.canonical for m in methods)
             check = options.guard_check and not all_canonical
@@ -350,7 +351,7 @@ def drape(
                 rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
                 plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
                                          layer_weights=weights, body_weights=body.dense_weights, rings=check,
-                                         between_layers=False, guarded=[i > 0 or not all_canonical for i in range(len(garments))],
+                                         between_layers=False,
                                          reuse=[not (m.fit == "canonical" and m.dynamics == "learned") for m in methods])
                 posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=check)
             skin = plans.skin

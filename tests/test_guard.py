@@ -238,18 +238,6 @@ def test_closest_triangle_check_overflow_slots_give_the_same_result(monkeypatch)
     np.testing.assert_array_equal(guard(pts[None, None], verts[None, None], plan, MARGIN), full)
 
 
-def test_a_layer_without_a_body_plan_passes_through_the_guard():
-    s = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
-    body = s.vertices.astype(np.float32)
-    inner = (s.vertices * 0.98).astype(np.float32)  # inside the body: a guarded layer moves out
-    outer = (s.vertices * 0.99).astype(np.float32)
-    plans = LayerPlans.build([inner[None], outer[None]], [s.faces, s.faces], body[None], s.faces, guarded=[False, True], between_layers=False)
-    assert plans.body[0] is None and plans.body[1] is not None
-    out = guard_layers([inner[None, None], outer[None, None]], body[None, None], plans)
-    np.testing.assert_array_equal(out[0][0, 0], inner)
-    assert (np.linalg.norm(out[1][0, 0], axis=1) > 1.0).all()
-
-
 def test_a_reused_body_plan_comes_back_only_for_the_same_rest_form_and_body():
     from inference.guard import layers as guard_layers_module
 

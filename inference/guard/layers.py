@@ -92,11 +92,11 @@ def _reused_body_plan(points: np.ndarray, body_rest: np.ndarray, body_faces: np.
 class LayerPlans:
     """Plans for a stack of garments, innermost first.
 
-    body  : one ``GuardPlan`` per layer against the body (None: the layer is not guarded)
+    body  : one ``GuardPlan`` per layer against the body
     inner : inner[i][j] is the plan of layer i against inner layer j < i
     """
 
-    body: list[GuardPlan | None]
+    body: list[GuardPlan]
     inner: list[list[GuardPlan]]
     skin: np.ndarray | None = None  # (Vb,) bool: the body's major components (``inference.repair``)
 
@@ -112,7 +112,6 @@ class LayerPlans:
         body_weights: np.ndarray | None = None,
         rings: bool = True,
         between_layers: bool = True,
-        guarded: Sequence[bool] | None = None,
         reuse: Sequence[bool] | None = None,
     ) -> "LayerPlans":
         """layers_rest : each (B, N_i, 3) rest garment vertices; layer_faces : each (F_i, 3);
@@ -120,25 +119,19 @@ class LayerPlans:
         skinning-aware body candidates (GuardPlan.build's ``skin``); rings : the body plans keep
         the triangles of the closest-triangle check (not needed with ``guard_layers(check=False)``);
         between_layers : the plans of each layer against the inner ones (False: the layers are
-        guarded against the body only, and ``inference.layers`` orders them); guarded : per
-        layer, whether it gets a body plan (default all; ``guard_layers`` passes the others
-        through unchanged); reuse : per layer, whether its body plan may come from (and go to) the
-        process's plans of earlier requests (a garment whose rest form does not follow the
-        motion: the same rest form and body give the same plan; default none)."""
+        guarded against the body only, and ``inference.layers`` orders them); reuse : per layer,
+        whether its body plan may come from (and go to) the process's plans of earlier requests (a
+        garment whose rest form does not follow the motion: the same rest form and body give the
+        same plan; default none)."""
         if len(layers_rest) != len(layer_faces):
             raise InputValueError("layer_faces", f"expected {len(layers_rest)} face arrays, got {len(layer_faces)}")
-        guarded = [True] * len(layers_rest) if guarded is None else list(guarded)
-        if len(guarded) != len(layers_rest):
-            raise InputValueError("guarded", f"expected {len(layers_rest)} flags, got {len(guarded)}")
         reuse = [False] * len(layers_rest) if reuse is None else list(reuse)
         if len(reuse) != len(layers_rest):
             raise InputValueError("reuse", f"expected {len(layers_rest)} flags, got {len(reuse)}")
         body = []
         for i, g in enumerate(layers_rest):
             kk, skin = (k, None) if layer_weights is None else (SKIN_PLAN_K, (layer_weights[i], body_weights))
-            if not guarded[i]:
-                body.append(None)
-            elif reuse[i]:
+            if reuse[i]:
                 body.append(_reused_body_plan(g, body_rest, body_faces, kk, skin, rings))
             else:
                 body.append(GuardPlan.build(g, body_rest, body_faces, kk, skin=skin, k_skin=2, rings=rings))
@@ -172,8 +165,7 @@ def guard_layers(
         raise InputValueError("layers", f"expected {len(plans.body)} layers, got {len(layers)}")
     out: list[np.ndarray] = []
     for i, p in enumerate(layers):
-        if plans.body[i] is not None:  # (a layer built without a plan passes through)
-            p = guard(p, body, plans.body[i], body_margin_m + i * layer_gap_m, iterations=GUARD_ITERATIONS, check=check)
+        p = guard(p, body, plans.body[i], body_margin_m + i * layer_gap_m, iterations=GUARD_ITERATIONS, check=check)
         for j in range(len(plans.inner[i])):  # none when the plans were built without between_layers
             p = guard(p, out[j], plans.inner[i][j], layer_gap_m)
         out.append(p)
