@@ -341,8 +341,7 @@ def drape(
         # garments has the final exact stage after the layers at every level, and the same layer order and skin
         # crossings without the check (docs/benchmarks.md, "Outfits: the guard's cost")
         if len(garments) > 1 or not all(m.canonical for m in methods):
-            all_canonical = all(m.canonical for m in methods)
-            check = options.guard_check and not all_canonical
+            check = options.guard_check and not all(m.canonical for m in methods)
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
                 # against the neutral body, the pose its skinning transforms start from). A plan is
