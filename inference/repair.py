@@ -52,12 +52,11 @@ none inside. The pipeline runs it
 last, after the guard and the layers' pushes, on every layer with that layer's body margin.
 
 Cost per frame, one thread (``python bench/bench_canonical.py``, the learned T-shirt on the heavy
-body, ~400 points within the clearance per frame; session 31): the winding grid of the body over
-the garments' region (REGION_M; ~0.9 ms, once per block of frames, shared by the layers, with the
-inflated copy ~0.15 ms), the count at the garment's 5,148 vertices (~1.5 ms), and for the points
-within the clearance one KD-tree of the block's nearby skin vertices, their targets and the count
-at them (~2.5 ms): ~4.9 ms in all on a quiet machine, against ~6.5 with a grid of the whole body and a KD-tree per
-frame (bench table in docs/benchmarks.md).
+body, ~400 points within the clearance per frame; session 37): the winding grid of the body over
+the garments' region (REGION_M; ~0.8 ms, once per block of frames, shared by the layers, with the
+inflated copy ~0.2 ms), the count at the garment's 5,148 vertices (~1.1 ms), and for the points
+within the clearance their nearest skin vertices (a grid per frame, ~0.4 ms), their targets
+(~0.5 ms) and the count at them (~0.7 ms): ~4.2 ms in all (bench tables in docs/benchmarks.md).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -89,13 +88,13 @@ REPAIR_CANDIDATES = 32
 NEAR_CANDIDATES = 8
 # Points with no outside target among those try this many times more (not needed on 02_02).
 FAR_FACTOR = 16
-# Half-width added around a frame's points inside for the skin vertices of their local KD-tree
+# Half-width added around a frame's points inside for the skin vertices of their local grid
 # (_posed_targets): the 32nd nearest skin vertex of a point inside the T-shirt's posed body lies
 # 4.9 cm away (median; p99 8.5 cm, 30 frames of the heavy body on 02_02).
 NEAR_BOX_M = 0.1
-# The block's frames share one KD-tree of their local skin vertices, frame f shifted by
-# f FRAME_SHIFT_M along x (far beyond a body's size; float64 keeps micrometres at 16 km).
-FRAME_SHIFT_M = 1000.0
+# Cell side of the grid of a frame's nearby skin vertices (``repair_kernels.frame_knn``): about two
+# vertex spacings of the anny body, so that a point's 8 nearest lie in its own and the next cells.
+KNN_CELL_M = 0.02
 # The points tested are those inside the body inflated by CLEARANCE_M (module doc): a point on the
 # skin leaves the skin's bulges free to cross its triangles. They move at least CLEARANCE_SLACK_M
 # beyond it, so that their targets are not on the inflated surface.
@@ -255,30 +254,20 @@ def _region(layers: list[np.ndarray]) -> np.ndarray:
 def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees: dict) -> np.ndarray:
     """Targets (n, k, 3) on the k posed skin vertices nearest to each point.
 
-    One KD-tree over the block's frames answers every point whose k-th neighbour lies within
-    NEAR_BOX_M: the skin vertices within NEAR_BOX_M of the box of each frame's points, each frame
-    shifted FRAME_SHIFT_M along x so that a point's neighbours are those of its own frame (its
-    ball then lies inside the box: the same neighbours as the whole skin's). The others ask the
-    whole skin's tree of their frame, built once per frame and kept in ``trees`` for the next pass."""
+    Per frame, a grid of the skin vertices within NEAR_BOX_M of the box of the frame's points
+    answers every point whose k-th neighbour is nearer than the box's side
+    (``inference.repair_kernels.frame_knn``: the same neighbours as the whole skin's). The others
+    ask the whole skin's tree of their frame, built once per frame and kept in ``trees`` for the
+    next pass."""
     q = Pb[frame, idx]
-    frames, fpos = np.unique(frame, return_inverse=True)
-    lo = np.full((len(frames), 3), np.inf, q.dtype)
-    hi = np.full((len(frames), 3), -np.inf, q.dtype)
-    np.minimum.at(lo, fpos, q)
-    np.maximum.at(hi, fpos, q)
-    fi, si = kernels.vertices_in_boxes(np.ascontiguousarray(Bb, np.float32), frames.astype(np.int64), skin_ids, lo - NEAR_BOX_M,
-                                       hi + NEAR_BOX_M)
-    shift = np.array([FRAME_SHIFT_M, 0.0, 0.0])
+    order = np.argsort(frame, kind="stable")
+    frames, counts = np.unique(frame[order], return_counts=True)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    nn, found = kernels.frame_knn(np.ascontiguousarray(Bb, np.float32), frames.astype(np.int64), starts,
+                                  np.ascontiguousarray(q[order], np.float64), skin_ids, k, NEAR_BOX_M, KNN_CELL_M)
     ids = np.empty((len(frame), k), np.int64)
-    todo = np.arange(len(frame))
-    if len(si) >= k:
-        tree = cKDTree(Bb[frames[fi], skin_ids[si]] + fi[:, None] * shift, balanced_tree=False, compact_nodes=False)
-        dist, nn = tree.query(q + fpos[:, None] * shift, k=k)
-        dist, nn = dist.reshape(len(q), k), nn.reshape(len(q), k)
-        # within NEAR_BOX_M the k nearest are of the point's own frame (the shift is far larger)
-        found = dist[:, -1] <= NEAR_BOX_M
-        ids[found] = skin_ids[si[nn[found]]]
-        todo = np.flatnonzero(~found)
+    ids[order] = nn
+    todo = order[~found]
     for f in np.unique(frame[todo]):  # C code
         sel = todo[frame[todo] == f]
         if f not in trees:

@@ -8,25 +8,121 @@ import numba
 import numpy as np
 
 _JIT = {"nogil": True, "cache": True, "fastmath": False}
+# ``frame_knn``'s bound is taken this much nearer than computed: a vertex's cell comes from a
+# rounded division, so one a rounding away from a cell's side may be binned across it.
+BOUND_SLACK_M = 1e-9
 
 
 @numba.njit(**_JIT)
-def vertices_in_boxes(verts, frames, ids, lo, hi):
-    """The vertices ``ids`` of frames ``frames`` inside each frame's box: verts (B, V, 3) float32;
-    frames (nf,) int64; ids (S,) int64; lo, hi (nf, 3) float, the boxes. Returns (fi, si): the
-    position in ``frames`` and in ``ids`` of each vertex inside, frame by frame, int64."""
-    nf, S = frames.shape[0], ids.shape[0]
-    fi = np.empty(nf * S, np.int64)
-    si = np.empty(nf * S, np.int64)
-    n = 0
-    for a in range(nf):
-        b = frames[a]
-        l0, l1, l2, h0, h1, h2 = lo[a, 0], lo[a, 1], lo[a, 2], hi[a, 0], hi[a, 1], hi[a, 2]
+def frame_knn(verts, frames, starts, q, ids, k, pad, h):
+    """The k nearest of the vertices ``ids`` to each point, in the point's own frame, nearest
+    first, where a grid of the frame's vertices near its points can tell them exactly.
+
+    verts  : (B, V, 3) float32, metres; ids (S,) int64, the candidate vertices (the skin)
+    frames : (nf,) int64, the frames that have points; starts (nf + 1,) int64: the points of
+             frames[a] are q[starts[a]:starts[a + 1]]
+    q      : (n, 3) float64, metres, the points, grouped by frame
+    pad    : metres; per frame only the vertices within the box of its points widened by pad
+             are binned, into cubic cells of side h (metres)
+    returns (nn (n, k) int64 vertex ids, found (n,) bool). A point's search reads shells of cells
+             around its own until its k-th nearest is no farther than the nearest side of the
+             cells read or of the box; a vertex not read then lies farther, so its k are those of
+             all ``ids`` (exact; equal distances keep the order of the scan). found is False
+             where the box holds fewer than k vertices or the whole box leaves the k-th nearest
+             farther than the box's side: the caller asks a tree of all ``ids``.
+    """
+    n, S = q.shape[0], ids.shape[0]
+    nn = np.full((n, k), -1, np.int64)
+    found = np.zeros(n, np.bool_)
+    pts = np.empty((S, 3))
+    sel = np.empty(S, np.int64)
+    best_d = np.empty(k)
+    best_i = np.empty(k, np.int64)
+    for a in range(frames.shape[0]):
+        b, p0, p1 = frames[a], starts[a], starts[a + 1]
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for p in range(p0, p1):
+            for c in range(3):
+                lo[c] = min(lo[c], q[p, c])
+                hi[c] = max(hi[c], q[p, c])
+        for c in range(3):
+            lo[c] -= pad
+            hi[c] += pad
+        m = 0
         for s in range(S):
             v = ids[s]
-            x, y, z = verts[b, v, 0], verts[b, v, 1], verts[b, v, 2]
-            if l0 <= x <= h0 and l1 <= y <= h1 and l2 <= z <= h2:
-                fi[n] = a
-                si[n] = s
-                n += 1
-    return fi[:n].copy(), si[:n].copy()
+            x, y, z = np.float64(verts[b, v, 0]), np.float64(verts[b, v, 1]), np.float64(verts[b, v, 2])
+            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]:
+                pts[m, 0], pts[m, 1], pts[m, 2] = x, y, z
+                sel[m] = v
+                m += 1
+        if m < k:
+            continue
+        dims = np.empty(3, np.int64)
+        for c in range(3):
+            dims[c] = int((hi[c] - lo[c]) / h) + 1
+        n1, n2 = dims[1], dims[2]
+        cells = dims[0] * n1 * n2
+        start = np.zeros(cells + 1, np.int64)
+        cell_of = np.empty(m, np.int64)
+        for r in range(m):
+            ci = min(int((pts[r, 0] - lo[0]) / h), dims[0] - 1)
+            cj = min(int((pts[r, 1] - lo[1]) / h), n1 - 1)
+            ck = min(int((pts[r, 2] - lo[2]) / h), n2 - 1)
+            cell_of[r] = (ci * n1 + cj) * n2 + ck
+            start[cell_of[r] + 1] += 1
+        for c in range(cells):
+            start[c + 1] += start[c]
+        fill = start[:-1].copy()
+        members = np.empty(m, np.int64)
+        for r in range(m):
+            members[fill[cell_of[r]]] = r
+            fill[cell_of[r]] += 1
+        for p in range(p0, p1):
+            x, y, z = q[p, 0], q[p, 1], q[p, 2]
+            ci = min(int((x - lo[0]) / h), dims[0] - 1)
+            cj = min(int((y - lo[1]) / h), n1 - 1)
+            ck = min(int((z - lo[2]) / h), n2 - 1)
+            # the box's nearest side: no vertex beyond it was binned
+            box = min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y, z - lo[2], hi[2] - z)
+            best_d[:] = np.inf
+            best_i[:] = -1
+            r = 0
+            while True:
+                a0, a1 = max(ci - r, 0), min(ci + r, dims[0] - 1)
+                b0, b1 = max(cj - r, 0), min(cj + r, n1 - 1)
+                c0, c1 = max(ck - r, 0), min(ck + r, n2 - 1)
+                for i in range(a0, a1 + 1):
+                    for j in range(b0, b1 + 1):
+                        edge = i == ci - r or i == ci + r or j == cj - r or j == cj + r
+                        row = (i * n1 + j) * n2
+                        for kk in range(c0, c1 + 1):
+                            if not (edge or kk == ck - r or kk == ck + r):
+                                continue  # read at a smaller r
+                            for t in range(start[row + kk], start[row + kk + 1]):
+                                s = members[t]
+                                dx, dy, dz = pts[s, 0] - x, pts[s, 1] - y, pts[s, 2] - z
+                                d = dx * dx + dy * dy + dz * dz
+                                if d < best_d[k - 1]:
+                                    j2 = k - 1
+                                    while j2 > 0 and best_d[j2 - 1] > d:
+                                        best_d[j2] = best_d[j2 - 1]
+                                        best_i[j2] = best_i[j2 - 1]
+                                        j2 -= 1
+                                    best_d[j2] = d
+                                    best_i[j2] = s
+                # the cells read hold every vertex nearer than their cube's nearest side
+                reach = min(x - (lo[0] + (ci - r) * h), lo[0] + (ci + r + 1) * h - x,
+                            y - (lo[1] + (cj - r) * h), lo[1] + (cj + r + 1) * h - y,
+                            z - (lo[2] + (ck - r) * h), lo[2] + (ck + r + 1) * h - z)
+                bound = min(reach, box) - BOUND_SLACK_M
+                if best_d[k - 1] <= bound * bound:
+                    found[p] = True
+                    for j2 in range(k):
+                        nn[p, j2] = sel[best_i[j2]]
+                    break
+                if a0 == 0 and b0 == 0 and c0 == 0 and a1 == dims[0] - 1 and b1 == n1 - 1 and c1 == n2 - 1:
+                    break  # the whole box read: the k-th nearest may lie beyond it
+                r += 1
+    return nn, found

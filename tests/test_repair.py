@@ -244,3 +244,32 @@ def test_an_inner_point_leaves_the_body_under_the_outer_layer_where_a_target_all
 
         assert beyond(plain)  # straight out, through the patch
         assert beyond(ordered) != under
+
+
+def test_nearest_skin_vertices_of_the_grid_equal_a_kd_trees():
+    """``frame_knn`` (the repair's nearest skin vertices per frame) gives a KD-tree's k nearest,
+    nearest first, for points inside, on and off a mesh, and leaves to the caller the points whose
+    k nearest may lie beyond their frame's box."""
+    from scipy.spatial import cKDTree
+
+    from inference.repair_kernels import frame_knn
+
+    rng = np.random.default_rng(3)
+    v, _ = _two_spheres()
+    verts = np.stack([v, v * 1.1 + [0.0, 0.3, 0.0]]).astype(np.float32)
+    ids = np.flatnonzero(rng.random(len(v)) < 0.8)
+    q = np.concatenate([rng.normal(size=(40, 3)) * 0.9, v[rng.choice(len(v), 20)] + rng.normal(size=(20, 3)) * 0.01])
+    frame = rng.integers(0, 2, len(q))
+    order = np.argsort(frame, kind="stable")
+    frames, counts = np.unique(frame[order], return_counts=True)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    k = 8
+    for pad in (0.05, 0.3, 5.0):
+        nn, found = frame_knn(verts, frames, starts, q[order], ids, k, pad, 0.1)
+        for p, f in enumerate(frame[order]):
+            dist, want = cKDTree(verts[f, ids].astype(np.float64)).query(q[order][p], k=k)
+            if found[p]:
+                assert np.array_equal(nn[p], ids[want])
+            else:
+                assert dist[-1] > pad  # only a point whose k-th nearest lies beyond the box is left
+        assert found.all() == (pad == 5.0)
