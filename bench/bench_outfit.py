@@ -8,7 +8,8 @@ the arm lift (``lift_arms`` off: the clip is retargeted as the judge does). The 
 ``--repeats`` runs after one warm-up; prints a markdown table of its stages
 (``DrapeResult.timings_ms``), ms per frame (an outfit-frame: all its garments). The guard's plans of
 static rest forms are kept between requests (``inference.guard.layers``: the same body with another
-motion); ``--cold`` empties them before every run (a body or garment the process has not seen).
+motion), and so is what a plan derives from the body alone (``inference.guard.plan``); ``--cold``
+empties both before every run (a body or garment the process has not seen).
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from inference.body import BodyModel  # noqa: E402
 from inference.garment import GarmentCatalog  # noqa: E402
 from inference.guard.layers import _PLANS  # noqa: E402
+from inference.guard.plan import _RESTS  # noqa: E402
 from inference.options import DrapeOptions  # noqa: E402
 from inference.pipeline import PoseSequence, drape  # noqa: E402
 from training.protocol import BODIES, clip_motion, load_clip  # noqa: E402
@@ -54,6 +56,7 @@ def main(argv: list[str] | None = None) -> None:
     for _ in range(args.repeats):
         if args.cold:
             _PLANS.clear()
+            _RESTS.clear()
         t = time.perf_counter()
         r = drape(body, shape, motion, garments, options)
         wall = time.perf_counter() - t

@@ -6,7 +6,6 @@ Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
-import hashlib
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -16,7 +15,7 @@ import numpy as np
 
 from inference.errors import InputShapeError, InputValueError
 from inference.guard.constants import DEFAULT_CANDIDATES, DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M, GUARD_ITERATIONS, SKIN_PLAN_K
-from inference.guard.plan import GuardPlan, collider_topology
+from inference.guard.plan import GuardPlan, collider_topology, content_key
 from inference.guard.push import _check_frames, _planes, _push_planes
 from inference.mesh import major_components
 
@@ -61,12 +60,6 @@ _PLANS: OrderedDict = OrderedDict()
 _PLANS_LOCK = threading.Lock()
 
 
-def _digest(a: np.ndarray) -> tuple:
-    """Content key of an array: 16 bytes of BLAKE2b, its dtype and shape (~0.1 ms for 100 KB)."""
-    a = np.ascontiguousarray(a)
-    return hashlib.blake2b(a.view(np.uint8).reshape(-1), digest_size=16).digest(), a.dtype.str, a.shape
-
-
 def _reused_body_plan(points: np.ndarray, body_rest: np.ndarray, body_faces: np.ndarray, k: int,
                       skin: tuple[np.ndarray, np.ndarray] | None, rings: bool) -> GuardPlan:
     """``GuardPlan.build`` of a garment's rest form against the body, kept (LRU, PLAN_CACHE_ENTRIES)
@@ -74,7 +67,7 @@ def _reused_body_plan(points: np.ndarray, body_rest: np.ndarray, body_faces: np.
     and the skinning weights (model arrays, never changed in place; the entry holds them, so that
     their ids are not reused while it lives)."""
     held = (body_faces,) + (tuple(skin) if skin is not None else ())
-    key = (_digest(points), _digest(body_rest), tuple(id(a) for a in held), k, rings)
+    key = (content_key(points), content_key(body_rest), tuple(id(a) for a in held), k, rings)
     with _PLANS_LOCK:
         hit = _PLANS.get(key)
         if hit is not None:

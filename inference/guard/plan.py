@@ -6,7 +6,10 @@ Units: metres. Arrays: float32, batch axis first.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -80,6 +83,83 @@ def collider_topology(collider_faces: np.ndarray, num_vertices: int) -> tuple[np
     for a in (faces, bnd, usable):
         a.flags.writeable = False
     return faces, bnd, usable
+
+
+def content_key(a: np.ndarray) -> tuple:
+    """Content key of an array: 16 bytes of BLAKE2b, its dtype and shape (~0.1 ms for 100 KB)."""
+    a = np.ascontiguousarray(a)
+    return hashlib.blake2b(a.view(np.uint8).reshape(-1), digest_size=16).digest(), a.dtype.str, a.shape
+
+
+# Colliders at rest kept per process (``_collider_rest``): a shopper's body comes back with every
+# garment and motion, and what a plan derives from the body alone is the same each time (~22 ms of
+# a T-shirt's ~52 ms plan on the anny body; docs/benchmarks.md, "Outfits: the guard's cost"). An
+# entry holds ~8-16 MB (the per-bone trees), so few are kept.
+REST_CACHE_ENTRIES = 4
+_RESTS: OrderedDict = OrderedDict()
+_RESTS_LOCK = threading.Lock()
+
+
+@dataclass
+class _ColliderRest:
+    """What ``GuardPlan.build`` derives from a collider at rest alone (one entry per frame b).
+
+    trees   : KD-trees of the usable vertices per frame
+    normals : (B, M, 3) float32 vertex normals, not yet oriented
+    closed_orientation : +-1.0 of a closed collider (signed volume of frame 0), None for an open one
+    reach   : median edge length, metres
+    bones   : (U,) the dominant bone of each usable vertex (None without weights)
+    others  : (b, bone) -> (ids, KD-tree) of the usable vertices of every other bone, built when first asked
+    """
+
+    trees: list
+    normals: np.ndarray
+    closed_orientation: float | None
+    reach: float
+    bones: np.ndarray | None
+    others: dict = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def other_bones(self, b: int, bone: int, rest: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, cKDTree]:
+        """The usable vertices skinned mostly to another bone than ``bone`` and their KD-tree
+        (unbalanced, uncompacted: ~1 ms for ~13,000 vertices) in frame b."""
+        with self.lock:
+            hit = self.others.get((b, bone))
+        if hit is None:
+            others = usable[self.bones != bone]
+            hit = (others, cKDTree(rest[b][others], balanced_tree=False, compact_nodes=False))
+            with self.lock:
+                self.others[(b, bone)] = hit
+        return hit
+
+
+def _collider_rest(collider_rest: np.ndarray, faces: np.ndarray, bnd: np.ndarray, usable: np.ndarray,
+                   collider_weights: np.ndarray | None) -> _ColliderRest:
+    """``_ColliderRest`` of a collider at rest, kept (LRU, REST_CACHE_ENTRIES) under the contents of
+    its vertices and the identities of its faces array (``collider_topology``'s) and weights
+    (model arrays, never changed in place; the entry holds them so that their ids stay theirs)."""
+    key = (content_key(collider_rest), id(faces), id(collider_weights))
+    with _RESTS_LOCK:
+        hit = _RESTS.get(key)
+        if hit is not None:
+            _RESTS.move_to_end(key)
+            return hit[1]
+    B = collider_rest.shape[0]
+    trees = [cKDTree(collider_rest[b][usable]) for b in range(B)]
+    normals = vertex_normals(collider_rest, faces)
+    orientation = None
+    if not bnd.any():  # closed: outward iff the signed volume sum_f v0 . (v1 x v2) / 6 is positive
+        tri = collider_rest[0].astype(np.float64)[faces]
+        orientation = -1.0 if np.einsum("fc,fc->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) < 0 else 1.0
+    e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
+    reach = float(np.median(np.linalg.norm(e, axis=-1)))
+    bones = None if collider_weights is None else np.argmax(np.asarray(collider_weights, np.float32)[usable], 1)
+    value = _ColliderRest(trees, normals, orientation, reach, bones)
+    with _RESTS_LOCK:
+        _RESTS[key] = ((faces, collider_weights), value)
+        while len(_RESTS) > REST_CACHE_ENTRIES:
+            _RESTS.popitem(last=False)
+    return value
 
 
 @dataclass(frozen=True)
@@ -163,43 +243,42 @@ class GuardPlan:
             raise InputShapeError("collider_rest", f"({B}, M, 3)", collider_rest.shape)
         faces, bnd, usable = collider_topology(collider_faces, M)
         k = int(min(k, len(usable)))
-        trees = [cKDTree(collider_rest[b][usable]) for b in range(B)]
-        near = np.stack([usable[trees[b].query(points_rest[b], k=k)[1].reshape(N, k)] for b in range(B)])
-        n_rest = vertex_normals(collider_rest, faces)
+        skinned = skin is not None and k_skin > 0
+        if skinned:
+            pw = np.asarray(skin[0], np.float32)
+            cw = skin[1]
+            if pw.shape[0] != N or cw.shape[0] != M or pw.shape[1] != cw.shape[1]:
+                raise InputShapeError("skin", f"((N={N}, J), (M={M}, J))", (pw.shape, cw.shape))
+        rest = _collider_rest(collider_rest, faces, bnd, usable, cw if skinned else None)
+        near = np.stack([usable[rest.trees[b].query(points_rest[b], k=k)[1].reshape(N, k)] for b in range(B)])
+        n_rest = rest.normals
         if bnd.any():
             # open collider (a garment): the points lie on its outer side in the reference pose
             side = np.einsum("bnc,bnc->bn", points_rest - _gather(collider_rest, near[..., 0]), _gather(n_rest, near[..., 0]))
             orientation = -1.0 if np.median(side) < 0 else 1.0
         else:
-            # closed collider: outward iff the signed volume sum_f v0 . (v1 x v2) / 6 is positive
-            tri = collider_rest[0].astype(np.float64)[faces]
-            orientation = -1.0 if np.einsum("fc,fc->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) < 0 else 1.0
+            orientation = rest.closed_orientation
         n_rest = n_rest * np.float32(orientation)
         parts = [near]
         n0 = _gather(n_rest, near[..., 0])  # (B, N, 3) the point's own surface normal
         if k_ahead > 0:
             q = points_rest + ahead_m * n0
             kk = int(min(k_ahead, len(usable)))
-            parts.append(np.stack([usable[trees[b].query(q[b], k=kk)[1].reshape(N, kk)] for b in range(B)]))
-        if skin is not None and k_skin > 0:
+            parts.append(np.stack([usable[rest.trees[b].query(q[b], k=kk)[1].reshape(N, kk)] for b in range(B)]))
+        if skinned:
             # the nearest collider vertices skinned mostly to another bone than the point: the
             # parts that a bending joint can bring against it (arm vs torso at the armpit)
-            pw, cw = (np.asarray(w, np.float32) for w in skin)
-            if pw.shape[0] != N or cw.shape[0] != M or pw.shape[1] != cw.shape[1]:
-                raise InputShapeError("skin", f"((N={N}, J), (M={M}, J))", (pw.shape, cw.shape))
             point_bone = np.argmax(pw, 1)
-            collider_bone = np.argmax(cw[usable], 1)
             skin_part = np.empty((B, N, k_skin), np.int64)
             # per dominant bone of the points, a KD-tree of the collider vertices of the other bones
-            # (built for one query batch each: unbalanced, uncompacted, ~1 ms for ~13,000 vertices);
-            # scanning every point's 32 nearest first, with these trees only where that held too
-            # few, took twice as long (~40 against ~20 ms for a jacket's 6,333 vertices)
+            # (kept with the collider at rest); scanning every point's 32 nearest first, with these
+            # trees only where that held too few, took twice as long (~40 against ~20 ms for a
+            # jacket's 6,333 vertices, the trees built per request)
             for b in range(B):
                 for bone in np.unique(point_bone):
                     rows = np.flatnonzero(point_bone == bone)
-                    others = usable[collider_bone != bone]
+                    others, tree = rest.other_bones(b, int(bone), collider_rest, usable)
                     kb = int(min(k_skin, len(others)))
-                    tree = cKDTree(collider_rest[b][others], balanced_tree=False, compact_nodes=False)
                     got = others[tree.query(points_rest[b][rows], k=kb)[1].reshape(len(rows), kb)]
                     skin_part[b, rows] = np.pad(got, ((0, 0), (0, k_skin - kb)), mode="edge")
             parts.append(skin_part)
@@ -252,8 +331,7 @@ class GuardPlan:
         local = np.searchsorted(collider_ids, cand)
         face_ids, inc = vertex_face_incidence(faces, M, collider_ids)
         rings_table = None if ring_faces is None else _one_rings(np.searchsorted(collider_ids, faces[ring_faces]), len(collider_ids))
-        e = collider_rest[0][faces[:, [0, 1, 2]]] - collider_rest[0][faces[:, [1, 2, 0]]]
-        reach = float(np.median(np.linalg.norm(e, axis=-1)))
+        reach = rest.reach
         has_dynamic = dynamic_points is not None and len(dynamic_points) > 0
         return cls(
             collider_ids=collider_ids,
