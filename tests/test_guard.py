@@ -254,3 +254,31 @@ def test_a_reused_body_plan_comes_back_only_for_the_same_rest_form_and_body():
     assert LayerPlans.build([moved], [s.faces], body, s.faces, reuse=[True]).body[0] is not first  # another rest form
     assert LayerPlans.build([shirt], [s.faces], body * 1.01, s.faces, reuse=[True]).body[0] is not first  # another body
     assert len(guard_layers_module._PLANS) <= guard_layers_module.PLAN_CACHE_ENTRIES
+
+
+def test_a_plan_built_on_a_kept_body_equals_one_built_from_scratch():
+    """What a plan derives from the body at rest alone is kept per body (``plan._collider_rest``):
+    a plan on a kept body, with skin-aware candidates, equals one built with nothing kept, and
+    another body's contents miss."""
+    from inference.guard import plan as plan_module
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    body = s.vertices.astype(np.float32)[None]
+    rng = np.random.default_rng(2)
+    shirt = (s.vertices * 1.02 + rng.normal(size=s.vertices.shape) * 1e-3).astype(np.float32)[None]
+    # two "bones": the upper and the lower half, blended across the equator
+    t = np.clip(s.vertices[:, 1] * 2 + 0.5, 0, 1)
+    weights = np.stack([t, 1 - t], 1).astype(np.float32)
+    plan_module._RESTS.clear()
+    cold = GuardPlan.build(shirt, body, s.faces, skin=(weights, weights), k_skin=2)
+    assert len(plan_module._RESTS) == 1
+    warm = GuardPlan.build(shirt, body.copy(), s.faces, skin=(weights, weights), k_skin=2)  # same contents: kept
+    assert len(plan_module._RESTS) == 1
+    for name in ("collider_ids", "candidates", "across", "face_ids", "dynamic_points", "dynamic_region", "ring", "ring_valence"):
+        np.testing.assert_array_equal(getattr(warm, name), getattr(cold, name))
+    assert (warm.reach_m, warm.orientation) == (cold.reach_m, cold.orientation)
+    GuardPlan.build(shirt, body * 1.01, s.faces, skin=(weights, weights), k_skin=2)  # another body
+    assert len(plan_module._RESTS) == 2
+    for i in range(plan_module.REST_CACHE_ENTRIES + 2):
+        GuardPlan.build(shirt, body * (1.02 + 0.01 * i), s.faces)
+    assert len(plan_module._RESTS) == plan_module.REST_CACHE_ENTRIES

@@ -94,8 +94,8 @@ def content_key(a: np.ndarray) -> tuple:
 # Colliders at rest kept per process (``_collider_rest``): a shopper's body comes back with every
 # garment and motion, and what a plan derives from the body alone is the same each time (~22 ms of
 # a T-shirt's ~52 ms plan on the anny body; docs/benchmarks.md, "Outfits: the guard's cost"). An
-# entry holds ~8-16 MB (the per-bone trees), so few are kept.
-REST_CACHE_ENTRIES = 4
+# entry holds ~14 MB (the per-bone trees of an outfit's ~17 bones; 25 MB with all 31), so few are kept.
+REST_CACHE_ENTRIES = 2
 _RESTS: OrderedDict = OrderedDict()
 _RESTS_LOCK = threading.Lock()
 
