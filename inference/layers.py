@@ -47,6 +47,8 @@ Units: metres. Arrays: float32 in, float32 out, frames (T, N, 3).
 """
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -57,6 +59,7 @@ from scipy.spatial import cKDTree
 from inference import mesh_kernels
 from inference.errors import InputShapeError
 from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
+from inference.mesh import content_key, per_array
 from inference.winding import check_faces
 
 # How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
@@ -70,6 +73,30 @@ MIN_SINK_COS = 0.2
 CONTACT_M = 0.06
 # One-ring averages of the sinking directions (``_smooth_rays``).
 RAY_SMOOTHING = 3
+
+
+# KD-trees of rest bodies kept per process (``body_tree``): a shopper's body comes back with every
+# outfit (~2 ms to build for the anny body, ~1 MB each).
+BODY_TREE_ENTRIES = 4
+_BODY_TREES: OrderedDict = OrderedDict()
+_BODY_TREES_LOCK = threading.Lock()
+
+
+def body_tree(rest_body: np.ndarray) -> cKDTree:
+    """A KD-tree of a rest body's vertices (Vb, 3) in float64, for ``body_anchors``: kept (LRU,
+    BODY_TREE_ENTRIES) under the contents of the vertices."""
+    key = content_key(rest_body)
+    with _BODY_TREES_LOCK:
+        tree = _BODY_TREES.get(key)
+        if tree is not None:
+            _BODY_TREES.move_to_end(key)
+            return tree
+    tree = cKDTree(np.asarray(rest_body, np.float64))
+    with _BODY_TREES_LOCK:
+        _BODY_TREES[key] = tree
+        while len(_BODY_TREES) > BODY_TREE_ENTRIES:
+            _BODY_TREES.popitem(last=False)
+    return tree
 
 
 def body_anchors(rest_garment: np.ndarray, rest_body: np.ndarray, tree: cKDTree | None = None) -> np.ndarray:
@@ -157,7 +184,7 @@ def _spread(sink: np.ndarray, faces: np.ndarray) -> np.ndarray:
     a vertex k edges away, k <= SPREAD_RINGS (a dent's rim slopes instead of stepping). Only the
     nonzero entries spread (a few % of the vertex-frames)."""
     T, N = sink.shape
-    src, dst = _neighbours(np.asarray(faces), N)
+    src, dst = _neighbours(faces, N)
     start = np.searchsorted(src, np.arange(N + 1))
     flat = sink.ravel().copy()
     front = np.flatnonzero(flat)
@@ -175,21 +202,32 @@ def _spread(sink: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return flat.reshape(T, N)
 
 
+@per_array
 def _neighbours(faces: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh's directed edges (src, dst), sorted by src."""
-    e = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    """The mesh's directed edges (src, dst), sorted by src; once per faces array
+    (``inference.mesh.per_array``), read-only."""
+    e = np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     e = np.concatenate([e, e[:, ::-1]])
     order = np.argsort(e[:, 0], kind="stable")
-    return e[order, 0], e[order, 1]
+    src, dst = e[order, 0], e[order, 1]
+    src.flags.writeable = dst.flags.writeable = False
+    return src, dst
+
+
+@per_array
+def _ring_matrix(faces: np.ndarray, n: int) -> sp.csr_matrix:
+    """A + I: the mesh's (n, n) vertex adjacency with the diagonal, for one-ring sums; once per
+    faces array (``inference.mesh.per_array``)."""
+    e = np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    A = sp.coo_matrix((np.ones(len(e) * 2), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    return A + sp.identity(n, format="csr")
 
 
 def _smooth_rays(rays: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unit anchor rays (T, N, 3) averaged with their one-ring, RAY_SMOOTHING times: neighbours
     whose anchors lie on different body parts (under the arm) sink in nearly one direction."""
     n = rays.shape[1]
-    e = np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    A = sp.coo_matrix((np.ones(len(e) * 2), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    A = A + sp.identity(n, format="csr")
+    A = _ring_matrix(faces, n)
     r = np.moveaxis(rays, 1, 0).reshape(n, -1)  # (N, T * 3)
     for _ in range(RAY_SMOOTHING):
         r = A @ r

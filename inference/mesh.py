@@ -5,6 +5,7 @@ Units: metres. Arrays: float32, batch axes first.
 from __future__ import annotations
 
 import functools
+import hashlib
 import weakref
 from collections import OrderedDict
 
@@ -17,6 +18,12 @@ MAJOR_COMPONENT_FRACTION = 0.1
 NORMAL_BLOCK = 16  # frames per block of vertex_normals (cache-sized temporaries)
 # Arrays whose derived values ``per_array`` keeps per function.
 PER_ARRAY_ENTRIES = 8
+
+
+def content_key(a: np.ndarray) -> tuple:
+    """Content key of an array: 16 bytes of BLAKE2b, its dtype and shape (~0.1 ms for 100 KB)."""
+    a = np.ascontiguousarray(a)
+    return hashlib.blake2b(a.view(np.uint8).reshape(-1), digest_size=16).digest(), a.dtype.str, a.shape
 
 
 def per_array(fn):

@@ -45,7 +45,6 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from inference.body import NEUTRAL_PHENOTYPES, BodyModel, BodyShape, linear_blend_skinning
 from inference.canonical import CanonicalModels, default_canonical, margin, push_fields
@@ -53,7 +52,7 @@ from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, re
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.layers import LayerContacts, body_anchors, untangle_layers
+from inference.layers import LayerContacts, body_anchors, body_tree, untangle_layers
 from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -356,7 +355,7 @@ def drape(
             skin = plans.skin
             if len(garments) > 1:
                 with timer("layers"):  # each inner layer under the ones outside it (inference.layers)
-                    tree = cKDTree(rest_body[0].astype(np.float64))
+                    tree = body_tree(rest_body[0])
                     anchors = [body_anchors(u[0], rest_body[0], tree) for u in unposed_fits]
                     contacts = LayerContacts.build([u[0] for u in unposed_fits], [g.faces for g in garments])
                     untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0], body.faces,

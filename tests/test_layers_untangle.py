@@ -138,3 +138,21 @@ def test_contacts_leave_out_only_parts_that_cannot_meet():
     (u_all, _), _ = untangle_layers(*args)
     np.testing.assert_array_equal(u_near, u_all)
     assert not np.array_equal(u_all, inner[None])
+
+
+def test_the_body_tree_is_kept_for_the_same_rest_body_only():
+    from scipy.spatial import cKDTree
+
+    from inference import layers as layers_module
+
+    rng = np.random.default_rng(4)
+    body = rng.normal(size=(500, 3)).astype(np.float32)
+    garment = rng.normal(size=(200, 3)).astype(np.float32)
+    tree = layers_module.body_tree(body)
+    assert layers_module.body_tree(body.copy()) is tree  # same contents
+    assert layers_module.body_tree(body * 1.01) is not tree  # another body
+    np.testing.assert_array_equal(layers_module.body_anchors(garment, body, tree),
+                                  cKDTree(body.astype(np.float64)).query(garment.astype(np.float64))[1])
+    for i in range(layers_module.BODY_TREE_ENTRIES + 2):
+        layers_module.body_tree(body * (1.1 + i))
+    assert len(layers_module._BODY_TREES) == layers_module.BODY_TREE_ENTRIES

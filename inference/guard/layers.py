@@ -15,9 +15,9 @@ import numpy as np
 
 from inference.errors import InputShapeError, InputValueError
 from inference.guard.constants import DEFAULT_CANDIDATES, DEFAULT_LAYER_GAP_M, DEFAULT_MARGIN_M, GUARD_ITERATIONS, SKIN_PLAN_K
-from inference.guard.plan import GuardPlan, collider_topology, content_key
+from inference.guard.plan import GuardPlan, collider_topology
 from inference.guard.push import _check_frames, _planes, _push_planes
-from inference.mesh import major_components
+from inference.mesh import content_key, major_components
 
 
 def guard(
