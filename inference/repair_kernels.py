@@ -13,6 +13,20 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 BOUND_SLACK_M = 1e-9
 
 
+@numba.njit(inline="always", **_JIT)
+def _insert(best_d, best_i, d, i, k):
+    """Put (d, i) into the ascending k-best lists, dropping the last. (``inference.guard.nearest``
+    has the same helper: numba's on-disk cache does not see a change to a function of another
+    module, so each kernel module keeps its own.)"""
+    j = k - 1
+    while j > 0 and best_d[j - 1] > d:
+        best_d[j] = best_d[j - 1]
+        best_i[j] = best_i[j - 1]
+        j -= 1
+    best_d[j] = d
+    best_i[j] = i
+
+
 @numba.njit(**_JIT)
 def frame_knn(verts, frames, starts, q, ids, k, pad, h):
     """The k nearest of the vertices ``ids`` to each point, in the point's own frame, nearest
@@ -105,13 +119,7 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h):
                                 dx, dy, dz = pts[s, 0] - x, pts[s, 1] - y, pts[s, 2] - z
                                 d = dx * dx + dy * dy + dz * dz
                                 if d < best_d[k - 1]:
-                                    j2 = k - 1
-                                    while j2 > 0 and best_d[j2 - 1] > d:
-                                        best_d[j2] = best_d[j2 - 1]
-                                        best_i[j2] = best_i[j2 - 1]
-                                        j2 -= 1
-                                    best_d[j2] = d
-                                    best_i[j2] = s
+                                    _insert(best_d, best_i, d, s, k)
                 # the cells read hold every vertex nearer than their cube's nearest side
                 reach = min(x - (lo[0] + (ci - r) * h), lo[0] + (ci + r + 1) * h - x,
                             y - (lo[1] + (cj - r) * h), lo[1] + (cj + r + 1) * h - y,
