@@ -282,3 +282,24 @@ def test_a_plan_built_on_a_kept_body_equals_one_built_from_scratch():
     for i in range(plan_module.REST_CACHE_ENTRIES + 2):
         GuardPlan.build(shirt, body * (1.02 + 0.01 * i), s.faces)
     assert len(plan_module._RESTS) == plan_module.REST_CACHE_ENTRIES
+
+
+def test_dynamic_region_is_the_near_vertices_and_one_far_vertex_per_cell():
+    """``dynamic_region`` against its definition from the full distance matrix: every collider
+    vertex within region_m of a point, and of those within reach_m the lowest index per voxel."""
+    from inference.guard.plan import dynamic_region
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.2, 0.2, (300, 3)).astype(np.float32)
+    collider = rng.uniform(-0.6, 0.6, (4000, 3)).astype(np.float32)
+    d = np.sqrt(((collider[:, None, :].astype(np.float64) - points[None]) ** 2).sum(-1)).min(1)
+    near = set(np.flatnonzero(d <= 0.05).tolist())
+    far = np.flatnonzero((d > 0.05) & (d <= 0.3))
+    first = {}
+    for i in far:  # ascending: the first vertex seen in a cell is its lowest index
+        first.setdefault(tuple(np.floor(collider[i] / 0.02).astype(np.int64)), i)
+    expected = np.array(sorted(near | set(first.values())))
+    got = dynamic_region(points, collider, 0.05, 0.3, 0.02)
+    assert np.array_equal(got, expected)
+    assert len(near) > 10 and len(first) < len(far)  # the case tests both parts and the thinning
+    assert np.array_equal(dynamic_region(points, collider, 0.05, 0.3, 0.0), np.flatnonzero(d <= 0.3))
