@@ -8,8 +8,9 @@ the arm lift (``lift_arms`` off: the clip is retargeted as the judge does). The 
 ``--repeats`` runs after one warm-up; prints a markdown table of its stages
 (``DrapeResult.timings_ms``), ms per frame (an outfit-frame: all its garments). The guard's plans of
 static rest forms are kept between requests (``inference.guard.layers``: the same body with another
-motion), and so are what a plan derives from the body alone (``inference.guard.plan``) and the
-body's KD-tree for the layers' anchors (``inference.layers.body_tree``); ``--cold`` empties all three before every run (a body or garment the process has not seen).
+motion), and so are what a plan derives from the body alone (``inference.guard.plan``), the
+body's KD-tree and the layers' anchors and contacts (``inference.layers``); ``--cold`` empties
+them all before every run (a body or garment the process has not seen).
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ from inference.body import BodyModel  # noqa: E402
 from inference.garment import GarmentCatalog  # noqa: E402
 from inference.guard.layers import _PLANS  # noqa: E402
 from inference.guard.plan import _RESTS  # noqa: E402
-from inference.layers import _BODY_TREES  # noqa: E402
+from inference.layers import _BODY_TREES, _RESTS as _LAYER_RESTS  # noqa: E402
 from inference.options import DrapeOptions  # noqa: E402
 from inference.pipeline import PoseSequence, drape  # noqa: E402
 from training.protocol import BODIES, clip_motion, load_clip  # noqa: E402
@@ -59,6 +60,7 @@ def main(argv: list[str] | None = None) -> None:
             _PLANS.clear()
             _RESTS.clear()
             _BODY_TREES.clear()
+            _LAYER_RESTS.clear()
         t = time.perf_counter()
         r = drape(body, shape, motion, garments, options)
         wall = time.perf_counter() - t

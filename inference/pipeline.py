@@ -52,7 +52,7 @@ from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, re
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.layers import LayerContacts, body_anchors, body_tree, untangle_layers
+from inference.layers import LayerContacts, body_anchors, body_tree, kept_anchors, untangle_layers
 from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import lift_arms
@@ -355,9 +355,11 @@ def drape(
             skin = plans.skin
             if len(garments) > 1:
                 with timer("layers"):  # each inner layer under the ones outside it (inference.layers)
-                    tree = body_tree(rest_body[0])
-                    anchors = [body_anchors(u[0], rest_body[0], tree) for u in unposed_fits]
-                    contacts = LayerContacts.build([u[0] for u in unposed_fits], [g.faces for g in garments])
+                    # kept for the body's next request, but where a rest form follows the motion (a learned canonical model's)
+                    moving = [m.fit == "canonical" and m.dynamics == "learned" for m in methods]
+                    anchors = [body_anchors(u[0], rest_body[0], body_tree(rest_body[0])) if mv else kept_anchors(u[0], rest_body[0])
+                               for u, mv in zip(unposed_fits, moving)]
+                    contacts = (LayerContacts.build if any(moving) else LayerContacts.kept)([u[0] for u in unposed_fits], [g.faces for g in garments])
                     untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0], body.faces,
                                                    options.layer_gap_m, margins, contacts)
                     posed = [u[None] for u in untangled]

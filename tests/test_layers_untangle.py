@@ -156,3 +156,27 @@ def test_the_body_tree_is_kept_for_the_same_rest_body_only():
     for i in range(layers_module.BODY_TREE_ENTRIES + 2):
         layers_module.body_tree(body * (1.1 + i))
     assert len(layers_module._BODY_TREES) == layers_module.BODY_TREE_ENTRIES
+
+
+def test_anchors_and_contacts_are_kept_for_the_same_rest_forms_only():
+    from inference import layers as layers_module
+
+    s = trimesh.creation.icosphere(4)
+    unit, F = np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int64)
+    body, inner, outer = 0.5 * unit, 0.9 * unit, 1.0 * unit
+    a = layers_module.kept_anchors(inner, body)
+    np.testing.assert_array_equal(a, body_anchors(inner, body))
+    assert layers_module.kept_anchors(inner.copy(), body.copy()) is a  # same contents: kept
+    assert not a.flags.writeable  # a shared entry cannot be changed by one request
+    moved = inner * np.float32(1.02)
+    np.testing.assert_array_equal(layers_module.kept_anchors(moved, body), body_anchors(moved, body))
+    c = LayerContacts.kept([inner, outer], [F, F])
+    fresh = LayerContacts.build([inner, outer], [F, F])
+    for got, want in ((c.outer_vertices, fresh.outer_vertices), (c.inner_faces, fresh.inner_faces)):
+        assert got.keys() == want.keys() and all(np.array_equal(got[k], want[k]) for k in want)
+    assert LayerContacts.kept([inner.copy(), outer.copy()], [F, F]) is c
+    assert LayerContacts.kept([inner, outer * np.float32(0.95)], [F, F]) is not c  # another outer form
+    assert LayerContacts.kept([inner, outer], [F.copy(), F]) is not c  # other faces arrays
+    for i in range(layers_module.REST_ENTRIES + 2):
+        layers_module.kept_anchors(inner * np.float32(1.1 + i), body)
+    assert len(layers_module._RESTS) == layers_module.REST_ENTRIES
