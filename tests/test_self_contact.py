@@ -90,3 +90,24 @@ def test_lifter_cache_reuses_the_body_set_up(body):
     assert arm_lifter(body, body.shape(HEAVY[None])) is first  # same phenotypes, same set-up
     assert arm_lifter(body, body.shape(LIGHT[None])) is not first
     np.testing.assert_array_equal(first.lift(rot, trans)[0], ArmLifter(body, shape).lift(rot, trans)[0])
+
+
+def test_nearest_torso_point_is_the_kd_trees_within_the_reach():
+    import numba
+    from scipy.spatial import cKDTree
+
+    from inference.motion import self_contact
+    from inference.motion.self_contact_kernels import nearest_within
+
+    rng = np.random.default_rng(5)
+    torso = rng.uniform(-0.2, 0.2, (3, 400, 3)).astype(np.float32)
+    arm = rng.uniform(-0.3, 0.3, (4, 150, 3)).astype(np.float32)
+    frames = np.array([2, 0, 2, 1], np.int64)
+    dist, near = nearest_within(torso, frames, arm, 0.05)
+    for a, t in enumerate(frames):
+        d, i = cKDTree(torso[t]).query(arm[a], k=1, distance_upper_bound=0.05)
+        np.testing.assert_array_equal(dist[a], d)  # the same float64 distances, inf beyond the reach
+        np.testing.assert_array_equal(near[a], np.where(np.isfinite(d), i, 0))
+    assert np.isfinite(dist).mean() > 0.2 and np.isinf(dist).mean() > 0.2  # both cases are exercised
+    self_contact.warm_up()  # a worker's start-up compiles the signature a request uses
+    assert numba.typeof(torso) in [sig[0] for sig in nearest_within.signatures]

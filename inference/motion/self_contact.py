@@ -29,8 +29,11 @@ abduction mean / max: neutral 2.9° / 14.3°, heaviest 15.7° / 34.4°, lightest
 
 Points: the torso and arm skin vertices thinned to one per ``TORSO_VOXEL_M`` / ``ARM_VOXEL_M``
 cell in the rest pose; normals are the rest normals rotated by the blended skinning transform.
-Cost on 01_01 (688 frames, one thread, reported): 1.0-1.4 ms per frame (neutral / heaviest body), plus
-~11 ms of per-body set-up (``ArmLifter``, cached per body shape by ``arm_lifter``).
+Each arm point's nearest torso point comes from a grid of the frame's torso points
+(``self_contact_kernels.nearest_within``, the answers of a KD-tree per frame). Cost (one thread,
+30-frame windows of the ``dance`` clip, five bodies): 0.21-0.27 ms per frame (0.51-0.65 with a
+KD-tree per frame), 0.56 for a 1-frame request, plus ~11 ms of per-body set-up (``ArmLifter``,
+cached per body shape by ``arm_lifter``).
 Units: metres, radians.
 """
 from __future__ import annotations
@@ -40,9 +43,9 @@ from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from inference.body import BodyModel, BodyShape, skin_points_and_normals
+from inference.motion.self_contact_kernels import nearest_within
 from inference.mesh import vertex_normals
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -127,13 +130,13 @@ class ArmLifter:
         segments = [T] if segments is None else [int(n) for n in segments]
         W, transforms = body.pose(shape.rest_bone_poses, rotations[None], translation[None])
         tp, tn = _skin(body, self.torso, rest, rest_n, transforms[0])  # the torso does not move with the arms
-        trees = [cKDTree(tp[t]) for t in range(T)]
+        tp = np.ascontiguousarray(tp, np.float32)
         angles = np.zeros((T, 2), np.float32)
         for side, (bone, arm) in enumerate(self.arms):
             active = np.arange(T)
             for _ in range(max(int(iterations), 1)):
                 ap, _ = _skin(body, arm, rest, rest_n, transforms[0, active])
-                step, axes = _steps(trees, tp, tn, ap, W[0, active, bone, :3, 3], active, T, margin_m, reach_m, tangent_m)
+                step, axes = _steps(tp, tn, ap, W[0, active, bone, :3, 3], active, T, margin_m, reach_m, tangent_m)
                 if not step.any():
                     break
                 src = _window_argmax(step, segments)  # a frame never gets less than its neighbours need
@@ -193,17 +196,14 @@ def arm_lifter(body: BodyModel, shape: BodyShape) -> ArmLifter:
     return lifter
 
 
-def _steps(trees, tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tuple[np.ndarray, np.ndarray]:
+def _steps(tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tuple[np.ndarray, np.ndarray]:
     """One abduction step per frame (module docstring): angle (T,) radians (0 where the arm is
     clear) and unit axis (T, 3), for the arm points ``ap`` (A, n, 3) of the ``active`` frames
-    (A,), their shoulder joints (A, 3), the torso points/normals tp, tn (T, m, 3) and trees."""
+    (A,), their shoulder joints (A, 3) and the torso points/normals tp, tn (T, m, 3)."""
     step, axes = np.zeros(T), np.zeros((T, 3))
-    dist = np.empty(ap.shape[:2])
-    near = np.empty(ap.shape[:2], np.intp)
-    for i, t in enumerate(active):  # a KD-tree query per frame (C); the rest is vectorised
-        dist[i], near[i] = trees[t].query(ap[i], k=1, distance_upper_bound=reach_m)
+    # each arm point's nearest torso point nearer than reach_m (compiled; the answers of a KD-tree of each frame's)
+    dist, near = nearest_within(tp, np.asarray(active, np.int64), np.ascontiguousarray(ap), float(reach_m))
     ok = np.isfinite(dist)
-    near = np.where(ok, near, 0)
     c, n = tp[active[:, None], near], tn[active[:, None], near]  # (A, n, 3)
     depth = -np.einsum("tic,tic->ti", ap - c, n)
     # the tangent plane judges only points that project near c (not across a crease)
@@ -240,3 +240,10 @@ def _rotate_bone(body: BodyModel, shape: BodyShape, W: np.ndarray, rot: np.ndarr
     Q = axis_angle_to_matrix((axes * theta[:, None]).astype(np.float64))
     D = axis_angle_to_matrix(rot.astype(np.float64))
     return matrix_to_axis_angle(np.swapaxes(A, -1, -2) @ Q @ A @ D).astype(np.float32)
+
+
+def warm_up() -> None:
+    """Compile the nearest-torso kernel (or load numba's cache) for a request's float32 points, so
+    that no request pays a first compilation."""
+    pts = np.zeros((1, 2, 3), np.float32)
+    nearest_within(pts, np.zeros(1, np.int64), pts, DEFAULT_REACH_M)
