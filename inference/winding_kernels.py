@@ -41,11 +41,11 @@ def _cells(u, v, u2, v2, a, c, d, lo_u, lo_v, inv_h, r0, r1, r2, r3, ni, nj):
     v0, v1, v2_ = v[a], v[c], v[d]
     s0, s1, s2 = u2[a], u2[c], u2[d]
     t0, t1, t2 = v2[a], v2[c], v2[d]
-    if (u1 - u0) * (v2_ - v0) - (v1 - v0) * (u2_ - u0) == 0.0 and (s1 - s0) * (t2 - t0) - (t1 - t0) * (s2 - s0) == 0.0:
-        return 1, 0, 1, 0
     umin, umax = min(u0, u1, u2_, s0, s1, s2), max(u0, u1, u2_, s0, s1, s2)
     vmin, vmax = min(v0, v1, v2_, t0, t1, t2), max(v0, v1, v2_, t0, t1, t2)
-    if umax < r0 or umin > r1 or vmax < r2 or vmin > r3:
+    if umax < r0 or umin > r1 or vmax < r2 or vmin > r3:  # first: most faces a garment's region leaves out
+        return 1, 0, 1, 0
+    if (u1 - u0) * (v2_ - v0) - (v1 - v0) * (u2_ - u0) == 0.0 and (s1 - s0) * (t2 - t0) - (t1 - t0) * (s2 - s0) == 0.0:
         return 1, 0, 1, 0
     i0 = max(int(np.floor((umin - lo_u) * inv_h)), 0)
     i1 = min(int(np.floor((umax - lo_u) * inv_h)), ni - 1)
