@@ -320,8 +320,13 @@ class LayerContacts:
     def kept(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> "LayerContacts":
         """``build`` kept under the contents of the rest forms and the identities of the faces
         arrays (a garment's, never changed in place; the entry holds them, so their ids stay theirs)."""
-        key = ("contacts", tuple(content_key(x) for x in rest_layers), tuple(id(f) for f in faces))
-        return _kept(key, lambda: (tuple(faces), cls.build(rest_layers, faces)))[1]
+        def build():
+            contacts = cls.build(rest_layers, faces)
+            for a in (*contacts.outer_vertices.values(), *contacts.inner_faces.values()):
+                a.flags.writeable = False  # shared by the requests that hit the entry
+            return tuple(faces), contacts
+
+        return _kept(("contacts", tuple(content_key(x) for x in rest_layers), tuple(id(f) for f in faces)), build)[1]
 
     @classmethod
     def everywhere(cls, layers: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> "LayerContacts":

@@ -180,3 +180,10 @@ def test_anchors_and_contacts_are_kept_for_the_same_rest_forms_only():
     for i in range(layers_module.REST_ENTRIES + 2):
         layers_module.kept_anchors(inner * np.float32(1.1 + i), body)
     assert len(layers_module._RESTS) == layers_module.REST_ENTRIES
+
+
+def test_kept_contacts_are_read_only():
+    s = trimesh.creation.icosphere(3)
+    unit, F = np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int64)
+    c = LayerContacts.kept([0.9 * unit, unit], [F, F])
+    assert not c.outer_vertices[0, 1].flags.writeable and not c.inner_faces[0, 1].flags.writeable
