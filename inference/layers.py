@@ -59,7 +59,7 @@ from scipy.spatial import cKDTree
 from inference import mesh_kernels
 from inference.errors import InputShapeError
 from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
-from inference.mesh import content_key, per_array
+from inference.mesh import content_key, faces_touching, per_array
 from inference.winding import check_faces
 
 # How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
@@ -279,7 +279,7 @@ def anchor_normals(body: np.ndarray, body_faces: np.ndarray, anchors: np.ndarray
     ids, inverse = np.unique(anchors, return_inverse=True)
     slot = np.full(body.shape[1], -1, np.int64)
     slot[ids] = np.arange(len(ids))
-    face_ids = np.flatnonzero((slot[faces] >= 0).any(1))
+    face_ids = faces_touching(faces, slot)
     n = np.empty((body.shape[0], len(ids), 3))
     mesh_kernels.normals_at(body, faces, face_ids, slot, n)
     return n[:, inverse]

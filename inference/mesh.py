@@ -67,6 +67,14 @@ def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True, dtype:
     return n.astype(dtype, copy=False)
 
 
+def faces_touching(faces: np.ndarray, slot: np.ndarray) -> np.ndarray:
+    """The ids (ascending) of the faces (F, 3) with a corner v where slot[v] >= 0. Three column
+    tests, not ``(slot[faces] >= 0).any(1)``: numpy reduces a length-3 axis row by row (~4x slower,
+    0.35 ms for the body's 27,420 faces)."""
+    s = slot[faces]
+    return np.flatnonzero((s[:, 0] >= 0) | (s[:, 1] >= 0) | (s[:, 2] >= 0))
+
+
 def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.ndarray | None = None) -> tuple[np.ndarray, sp.csr_matrix]:
     """Faces touching ``vertex_ids`` and the (S, Fs) 0/1 incidence matrix between them.
 
@@ -78,8 +86,7 @@ def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.n
         vertex_ids = np.arange(num_vertices)
     local = np.full(num_vertices, -1, np.int64)
     local[vertex_ids] = np.arange(len(vertex_ids))
-    touched = (local[faces] >= 0).any(1)
-    face_ids = np.flatnonzero(touched)
+    face_ids = faces_touching(faces, local)
     lf = local[faces[face_ids]]  # (Fs, 3), -1 where the corner is not in the subset
     rows = lf.ravel()
     cols = np.repeat(np.arange(len(face_ids)), 3)

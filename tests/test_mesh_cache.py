@@ -36,3 +36,15 @@ def test_compiled_anchor_normals_equal_the_numpy_vertex_normals():
     ids = rng.choice(len(s.vertices), 20, replace=False)
     got = anchor_normals(v, s.faces.astype(np.int32), ids)
     np.testing.assert_allclose(got, vertex_normals(v, s.faces)[:, ids], atol=1e-6)
+
+
+def test_faces_touching_equals_the_row_test():
+    from inference.mesh import faces_touching
+
+    rng = np.random.default_rng(2)
+    faces = rng.integers(0, 1000, (5000, 3))
+    slot = np.full(1000, -1, np.int64)
+    slot[rng.choice(1000, 40, replace=False)] = np.arange(40)
+    got = faces_touching(faces, slot)
+    np.testing.assert_array_equal(got, np.flatnonzero((slot[faces] >= 0).any(1)))
+    assert 0 < len(got) < len(faces)
