@@ -1,4 +1,5 @@
-"""Compiled kernels of ``inference.repair`` (numba, no Python objects, one thread).
+"""Compiled kernels of ``inference.repair`` (numba, no Python objects, one thread); ``frame_knn``
+also finds the arm lift's nearest torso points (``inference.motion.self_contact``).
 
 Units: metres. Arrays: float32 vertices, int64 ids.
 """
@@ -28,7 +29,7 @@ def _insert(best_d, best_i, d, i, k):
 
 
 @numba.njit(**_JIT)
-def frame_knn(verts, frames, starts, q, ids, k, pad, h):
+def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
     """The k nearest of the vertices ``ids`` to each point, in the point's own frame, nearest
     first, where a grid of the frame's vertices near its points can tell them exactly.
 
@@ -38,6 +39,8 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h):
     q      : (n, 3) float64, metres, the points, grouped by frame
     pad    : metres; per frame only the vertices within the box of its points widened by pad
              are binned, into cubic cells of side h (metres)
+    radius : metres; a point whose cells read cover the ball of this radius without an answer
+             stops there, not found (with pad > radius: none of its k nearest lies within radius)
     returns (nn (n, k) int64 vertex ids, found (n,) bool). A point's search reads shells of cells
              around its own until its k-th nearest is no farther than the nearest side of the
              cells read or of the box; a vertex not read then lies farther, so its k are those of
@@ -132,5 +135,7 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h):
                     break
                 if a0 == 0 and b0 == 0 and c0 == 0 and a1 == dims[0] - 1 and b1 == n1 - 1 and c1 == n2 - 1:
                     break  # the whole box read: the k-th nearest may lie beyond it
+                if reach - BOUND_SLACK_M >= radius:
+                    break  # every vertex within radius read, and the k-th nearest lies beyond it
                 r += 1
     return nn, found

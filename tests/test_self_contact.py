@@ -97,17 +97,17 @@ def test_nearest_torso_point_is_the_kd_trees_within_the_reach():
     from scipy.spatial import cKDTree
 
     from inference.motion import self_contact
-    from inference.motion.self_contact_kernels import nearest_within
+    from inference.repair_kernels import frame_knn
 
     rng = np.random.default_rng(5)
     torso = rng.uniform(-0.2, 0.2, (3, 400, 3)).astype(np.float32)
     arm = rng.uniform(-0.3, 0.3, (4, 150, 3)).astype(np.float32)
     frames = np.array([2, 0, 2, 1], np.int64)
-    dist, near = nearest_within(torso, frames, arm, 0.05)
+    dist, near = self_contact._nearest_torso(torso, arm, frames, 0.05)
     for a, t in enumerate(frames):
         d, i = cKDTree(torso[t]).query(arm[a], k=1, distance_upper_bound=0.05)
         np.testing.assert_array_equal(dist[a], d)  # the same float64 distances, inf beyond the reach
         np.testing.assert_array_equal(near[a], np.where(np.isfinite(d), i, 0))
     assert np.isfinite(dist).mean() > 0.2 and np.isinf(dist).mean() > 0.2  # both cases are exercised
     self_contact.warm_up()  # a worker's start-up compiles the signature a request uses
-    assert numba.typeof(torso) in [sig[0] for sig in nearest_within.signatures]
+    assert numba.typeof(torso) in [sig[0] for sig in frame_knn.signatures]

@@ -30,7 +30,7 @@ abduction mean / max: neutral 2.9° / 14.3°, heaviest 15.7° / 34.4°, lightest
 Points: the torso and arm skin vertices thinned to one per ``TORSO_VOXEL_M`` / ``ARM_VOXEL_M``
 cell in the rest pose; normals are the rest normals rotated by the blended skinning transform.
 Each arm point's nearest torso point comes from a grid of the frame's torso points
-(``self_contact_kernels.nearest_within``, the answers of a KD-tree per frame). Cost (one thread,
+(``inference.repair_kernels.frame_knn``, the answers of a KD-tree per frame). Cost (one thread,
 30-frame windows of the ``dance`` clip, five bodies): 0.21-0.27 ms per frame (0.51-0.65 with a
 KD-tree per frame), 0.56 for a 1-frame request, plus ~11 ms of per-body set-up (``ArmLifter``,
 cached per body shape by ``arm_lifter``).
@@ -45,7 +45,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from inference.body import BodyModel, BodyShape, skin_points_and_normals
-from inference.motion.self_contact_kernels import nearest_within
+from inference.repair_kernels import frame_knn
 from inference.mesh import vertex_normals
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -196,13 +196,32 @@ def arm_lifter(body: BodyModel, shape: BodyShape) -> ArmLifter:
     return lifter
 
 
+def _nearest_torso(tp: np.ndarray, ap: np.ndarray, active: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest torso point of each arm point in its own frame, where one is nearer than
+    ``reach_m``: distances (A, n) float64 (inf where none) and indices (A, n) into tp's points (0
+    where none), for the arm points ``ap`` (A, n, 3) of the ``active`` frames (A,) and the torso
+    points tp (T, m, 3) float32. A grid per frame of the torso points near its arm points, cells of
+    the reach (``inference.repair_kernels.frame_knn``, exact): the answers of a KD-tree of each
+    frame's torso points with ``distance_upper_bound``, without building one per frame."""
+    A, n = ap.shape[:2]
+    q = np.ascontiguousarray(ap.reshape(-1, 3), np.float64)  # float32 points, exactly
+    frames = np.asarray(active, np.int64)
+    # boxed and searched a micrometre past the reach, cells a little wider (the 27 around a point's own
+    # cover it): a point not found has no torso point within the reach
+    nn, found = frame_knn(np.ascontiguousarray(tp, np.float32), frames, np.arange(A + 1, dtype=np.int64) * n, q,
+                          np.arange(tp.shape[1], dtype=np.int64), 1, reach_m + 1e-6, reach_m + 2e-6, reach_m + 1e-6)
+    near = np.where(found, nn[:, 0], 0)
+    d = np.sqrt(((q - tp[np.repeat(frames, n), near].astype(np.float64)) ** 2).sum(-1))  # cKDTree's float64 sum
+    ok = found & (d < reach_m)
+    return np.where(ok, d, np.inf).reshape(A, n), np.where(ok, near, 0).reshape(A, n)
+
+
 def _steps(tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tuple[np.ndarray, np.ndarray]:
     """One abduction step per frame (module docstring): angle (T,) radians (0 where the arm is
     clear) and unit axis (T, 3), for the arm points ``ap`` (A, n, 3) of the ``active`` frames
     (A,), their shoulder joints (A, 3) and the torso points/normals tp, tn (T, m, 3)."""
     step, axes = np.zeros(T), np.zeros((T, 3))
-    # each arm point's nearest torso point nearer than reach_m (compiled; the answers of a KD-tree of each frame's)
-    dist, near = nearest_within(tp, np.asarray(active, np.int64), np.ascontiguousarray(ap), float(reach_m))
+    dist, near = _nearest_torso(tp, ap, active, reach_m)
     ok = np.isfinite(dist)
     c, n = tp[active[:, None], near], tn[active[:, None], near]  # (A, n, 3)
     depth = -np.einsum("tic,tic->ti", ap - c, n)
@@ -243,7 +262,7 @@ def _rotate_bone(body: BodyModel, shape: BodyShape, W: np.ndarray, rot: np.ndarr
 
 
 def warm_up() -> None:
-    """Compile the nearest-torso kernel (or load numba's cache) for a request's float32 points, so
+    """Compile the nearest-torso search (or load numba's cache) for a request's float32 points, so
     that no request pays a first compilation."""
     pts = np.zeros((1, 2, 3), np.float32)
-    nearest_within(pts, np.zeros(1, np.int64), pts, DEFAULT_REACH_M)
+    _nearest_torso(pts, pts, np.zeros(1, np.int64), DEFAULT_REACH_M)
