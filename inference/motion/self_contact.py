@@ -31,9 +31,9 @@ Points: the torso and arm skin vertices thinned to one per ``TORSO_VOXEL_M`` / `
 cell in the rest pose; normals are the rest normals rotated by the blended skinning transform.
 Each arm point's nearest torso point comes from a grid of the frame's torso points
 (``inference.repair_kernels.frame_knn``, the answers of a KD-tree per frame). Cost (one thread,
-30-frame windows of the ``dance`` clip, five bodies): 0.21-0.27 ms per frame (0.51-0.65 with a
-KD-tree per frame), 0.56 for a 1-frame request, plus ~11 ms of per-body set-up (``ArmLifter``,
-cached per body shape by ``arm_lifter``).
+30-frame windows of the ``dance`` clip, three bodies): 0.27-0.36 ms per frame (0.57-0.66 with a
+KD-tree per frame), 0.62-0.74 for a 1-frame request, plus ~11 ms of per-body set-up
+(``ArmLifter``, cached per body shape by ``arm_lifter``).
 Units: metres, radians.
 """
 from __future__ import annotations
@@ -45,8 +45,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from inference.body import BodyModel, BodyShape, skin_points_and_normals
-from inference.repair_kernels import frame_knn
 from inference.mesh import vertex_normals
+from inference.repair_kernels import frame_knn
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 # Bones of each arm chain (shoulder joint = head of the first) and of the body they must clear.
@@ -130,7 +130,6 @@ class ArmLifter:
         segments = [T] if segments is None else [int(n) for n in segments]
         W, transforms = body.pose(shape.rest_bone_poses, rotations[None], translation[None])
         tp, tn = _skin(body, self.torso, rest, rest_n, transforms[0])  # the torso does not move with the arms
-        tp = np.ascontiguousarray(tp, np.float32)
         angles = np.zeros((T, 2), np.float32)
         for side, (bone, arm) in enumerate(self.arms):
             active = np.arange(T)
