@@ -22,7 +22,7 @@ next grid reuses.
 
 Cost per frame (27,420-face body, 5,148 T-shirt points, one thread; ``python bench/bench_canonical.py``):
 the grid ~1.8 ms, or ~0.9 over a garment's region (``WindingGrid``'s ``region``: only the faces
-over the points asked), the count ~1.5 ms; the same algorithm in numpy took ~9 + ~7 ms. A
+over the points asked), the count ~0.7 ms; the same algorithm in numpy took ~9 + ~7 ms. A
 bounding-volume hierarchy refitted per frame (0.3 ms) with a ray along each point's outward axis
 gave the same counts but cost 3.2 ms to count (a branchy traversal, ~45 boxes a point at ~30 ns
 each, against ~18 contiguous pre-tests in a cell), so the grid stays.

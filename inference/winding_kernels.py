@@ -11,7 +11,8 @@ contraction): the two faces of an edge evaluate the same edge function from the 
 vertices, so a ray through an edge is counted once.
 
 Cost per frame of the 27,420-face body (79k cell-face pairs), 5,148 garment points, one thread:
-binning ~1.9 ms (two passes), counting ~1.6 ms (~17 candidate faces per point in its cell).
+binning ~1.8 ms (two passes), counting ~0.7 ms (~17 candidate faces per point in its cell, ~1.2 of
+them past the box pre-test).
 The first call of a process compiles (~5 s) or loads numba's cache (~0.3 s):
 ``inference.winding.warm_up``.
 
@@ -190,10 +191,12 @@ def count_crossings(points, frame, down, u, v, y, u2, v2, y2, faces, edge_lo, ed
         base = b * V
         up = not down[p]
         for s in range(start[c], start[c + 1]):
-            # cheap pre-test: the projected box holds p and the face reaches above (below) p
-            if pu < pair_box[s, 0] or pu > pair_box[s, 1] or pv < pair_box[s, 2] or pv > pair_box[s, 3]:
-                continue
-            if (pair_box[s, 4] <= pyy) if up else (pair_box[s, 5] >= pyy):
+            # cheap pre-test: the projected box holds p and the face reaches above (below) p; the
+            # five comparisons joined by | (no short circuit), so that a face costs one branch,
+            # not up to five hard-to-predict ones (0.79 against 1.38 ms a frame)
+            miss = ((pu < pair_box[s, 0]) | (pu > pair_box[s, 1]) | (pv < pair_box[s, 2]) | (pv > pair_box[s, 3])
+                    | ((pair_box[s, 4] <= pyy) if up else (pair_box[s, 5] >= pyy)))
+            if miss:
                 continue
             f = cell_face[s]
             total += _crossing(pu, pv, pyy, up, f, base, u, v, y, faces, edge_lo, edge_hi, opposite, flip)
