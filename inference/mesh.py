@@ -75,6 +75,26 @@ def faces_touching(faces: np.ndarray, slot: np.ndarray) -> np.ndarray:
     return np.flatnonzero((s[:, 0] >= 0) | (s[:, 1] >= 0) | (s[:, 2] >= 0))
 
 
+@per_array
+def _vertex_faces(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each vertex's faces, ascending, as CSR (indptr (V + 1,), face ids): once per faces array."""
+    corners = np.asarray(faces, np.int64).ravel()
+    order = np.argsort(corners, kind="stable")  # a vertex's corners in face order
+    return np.searchsorted(corners[order], np.arange(num_vertices + 1)), order // 3
+
+
+def faces_around(faces: np.ndarray, vertex_ids: np.ndarray, num_vertices: int) -> np.ndarray:
+    """``faces_touching`` for the vertices ``vertex_ids`` (any order, repeats allowed), from a
+    vertex-to-faces table kept per faces array (``per_array``: pass the same array each call): the
+    ~6 faces of each vertex instead of a test of every face (~10 us for a few hundred vertices
+    where the body's 27,420 faces take ~0.1 ms)."""
+    indptr, face_of = _vertex_faces(faces, num_vertices)
+    v = np.asarray(vertex_ids, np.int64)
+    start, count = indptr[v], indptr[v + 1] - indptr[v]
+    first = np.cumsum(count) - count  # each vertex's first slot in the gathered list
+    return np.unique(face_of[np.repeat(start - first, count) + np.arange(int(count.sum()))])
+
+
 def vertex_face_incidence(faces: np.ndarray, num_vertices: int, vertex_ids: np.ndarray | None = None) -> tuple[np.ndarray, sp.csr_matrix]:
     """Faces touching ``vertex_ids`` and the (S, Fs) 0/1 incidence matrix between them.
 

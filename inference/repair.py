@@ -73,7 +73,7 @@ from inference import mesh_kernels
 from inference import repair_kernels as kernels
 from inference.errors import InputShapeError
 from inference.layers import LayerFrames
-from inference.mesh import faces_touching, major_components, per_array
+from inference.mesh import faces_around, major_components, per_array
 from inference.winding import FRAME_BLOCK, WindingGrid, inflated, ray_down
 
 log = logging.getLogger(__name__)
@@ -294,7 +294,7 @@ def _targets(Bb, frame, ids, skin_faces, margin_m, points) -> np.ndarray:
     slot = np.full(Bb.shape[1], -1, np.int64)
     slot[verts] = np.arange(len(verts))
     n = np.empty((len(frames), len(verts), 3))
-    mesh_kernels.normals_at(Bb[frames], skin_faces, faces_touching(skin_faces, slot), slot, n)
+    mesh_kernels.normals_at(Bb[frames], skin_faces, faces_around(skin_faces, verts, Bb.shape[1]), slot, n)
     vpos = vpos.reshape(ids.shape)
     c, nc = Bb[frame[:, None], ids], n[fpos[:, None], vpos]  # (n, k, 3), nearest first
     p = np.asarray(points)[:, None, :]

@@ -48,3 +48,17 @@ def test_faces_touching_equals_the_row_test():
     got = faces_touching(faces, slot)
     np.testing.assert_array_equal(got, np.flatnonzero((slot[faces] >= 0).any(1)))
     assert 0 < len(got) < len(faces)
+
+
+def test_faces_around_equals_faces_touching():
+    from inference.mesh import faces_around, faces_touching
+
+    rng = np.random.default_rng(2)
+    faces = rng.integers(0, 300, (900, 3))
+    for n in (0, 1, 7, 120, 300):
+        ids = rng.choice(300, n, replace=False)
+        slot = np.full(300, -1, np.int64)
+        slot[ids] = np.arange(n)
+        got = faces_around(faces, np.concatenate([ids, ids[: n // 2]]), 300)  # repeats allowed
+        np.testing.assert_array_equal(got, faces_touching(faces, slot))
+        assert got.dtype == np.int64
