@@ -44,7 +44,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from inference.body import BodyModel, BodyShape, skin_points_and_normals
+from inference.body import BodyModel, BodyShape, linear_blend_skinning, skin_points_and_normals
 from inference.mesh import vertex_normals
 from inference.repair_kernels import frame_knn
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
@@ -131,23 +131,35 @@ class ArmLifter:
         W, transforms = body.pose(shape.rest_bone_poses, rotations[None], translation[None])
         tp, tn = _skin(body, self.torso, rest, rest_n, transforms[0])  # the torso does not move with the arms
         angles = np.zeros((T, 2), np.float32)
-        for side, (bone, arm) in enumerate(self.arms):
-            active = np.arange(T)
-            for _ in range(max(int(iterations), 1)):
-                ap, _ = _skin(body, arm, rest, rest_n, transforms[0, active])
-                step, axes = _steps(tp, tn, ap, W[0, active, bone, :3, 3], active, T, margin_m, reach_m, tangent_m)
+        # The two arms iterate side by side: an arm's chain and its skin do not depend on the other
+        # arm's bones, so this is the left arm's iterations then the right's, with one forward
+        # kinematics per iteration for both.
+        active = [np.arange(T) for _ in self.arms]
+        for _ in range(max(int(iterations), 1)):
+            moved = []
+            for side, (bone, arm) in enumerate(self.arms):
+                if not len(active[side]):
+                    continue
+                a = active[side]
+                ap = linear_blend_skinning(rest[None, arm], body.dense_weights[arm], transforms[:, a])[0]
+                step, axes = _steps(tp, tn, ap, W[0, a, bone, :3, 3], a, T, margin_m, reach_m, tangent_m)
                 if not step.any():
-                    break
+                    active[side] = a[:0]
+                    continue
                 src = _window_argmax(step, segments)  # a frame never gets less than its neighbours need
                 axes = np.where((step > 0)[:, None], axes, axes[src])
                 step = np.minimum(step[src], _TOTAL_CAP - angles[:, side])
-                active = np.flatnonzero(step > 0)
-                if not len(active):
-                    break
-                angles[active, side] += step[active]
-                rotations[active, bone] = _rotate_bone(body, shape, W[0, active], rotations[active, bone], bone, axes[active], step[active])
-                Wa, Ta = body.pose(shape.rest_bone_poses, rotations[None, active], translation[None, active])
-                W[0, active], transforms[0, active] = Wa[0], Ta[0]
+                a = active[side] = np.flatnonzero(step > 0)
+                if not len(a):
+                    continue
+                angles[a, side] += step[a]
+                rotations[a, bone] = _rotate_bone(body, shape, W[0, a], rotations[a, bone], bone, axes[a], step[a])
+                moved.append(a)
+            if not moved:
+                break
+            u = moved[0] if len(moved) == 1 else np.union1d(*moved)
+            Wa, Ta = body.pose(shape.rest_bone_poses, rotations[None, u], translation[None, u])
+            W[0, u], transforms[0, u] = Wa[0], Ta[0]
         return rotations, angles
 
 
