@@ -31,8 +31,8 @@ Points: the torso and arm skin vertices thinned to one per ``TORSO_VOXEL_M`` / `
 cell in the rest pose; normals are the rest normals rotated by the blended skinning transform.
 Each arm point's nearest torso point comes from a grid of the frame's torso points
 (``inference.repair_kernels.frame_knn``, the answers of a KD-tree per frame). Cost (one thread,
-30-frame windows of the ``dance`` clip, three bodies): 0.27-0.36 ms per frame (0.57-0.66 with a
-KD-tree per frame), 0.62-0.74 for a 1-frame request, plus ~11 ms of per-body set-up
+30-frame windows of the ``dance`` clip, three bodies): 0.24-0.28 ms per frame (0.57-0.66 with a
+KD-tree per frame), 0.57-0.66 for a 1-frame request, plus ~11 ms of per-body set-up
 (``ArmLifter``, cached per body shape by ``arm_lifter``).
 Units: metres, radians.
 """
