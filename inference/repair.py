@@ -184,8 +184,7 @@ def repair_layers(
     if skin is None:
         skin, skin_ids, skin_faces = _skin(body_faces, Bv.shape[1])
     else:
-        skin_ids = np.flatnonzero(skin)
-        skin_faces = np.asarray(body_faces)[skin[body_faces].all(1)]
+        skin_ids, skin_faces = _masked_skin(body_faces, np.asarray(skin, bool).tobytes())
     k = int(min(k, len(skin_ids)))
     if clearance_m is None:
         clearance_m = CLEARANCE_M
@@ -283,6 +282,16 @@ def _skin(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray,
     faces = np.asarray(faces)
     skin = major_components(faces, num_vertices)
     return skin, np.flatnonzero(skin), faces[skin[faces].all(1)]
+
+
+@per_array
+def _masked_skin(faces: np.ndarray, skin: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """The vertex ids of a skin mask (its (V,) bool bytes) and the faces among them: once per
+    faces array and mask, so that the same faces array reaches ``faces_around`` (its table is
+    kept per array) in every request."""
+    mask = np.frombuffer(skin, bool)
+    faces = np.asarray(faces)
+    return np.flatnonzero(mask), faces[mask[faces].all(1)]
 
 
 def _targets(Bb, frame, ids, skin_faces, margin_m, points) -> np.ndarray:

@@ -273,3 +273,19 @@ def test_nearest_skin_vertices_of_the_grid_equal_a_kd_trees():
             else:
                 assert dist[-1] > pad  # only a point whose k-th nearest lies beyond the box is left
         assert found.all() == (pad == 5.0)
+
+
+def test_a_skin_mask_gives_the_same_skin_faces_array_each_request():
+    # the target normals' vertex-to-faces table is kept per faces array: equal masks from two
+    # requests (two objects) must reach it as one array, with the faces whose corners are all skin
+    from inference.repair import _masked_skin
+
+    faces = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4], [4, 5, 6]])
+    mask = np.array([1, 1, 1, 1, 0, 1, 1], bool)
+    ids, a = _masked_skin(faces, mask.copy().tobytes())
+    _, b = _masked_skin(faces, mask.copy().tobytes())
+    assert a is b
+    np.testing.assert_array_equal(ids, [0, 1, 2, 3, 5, 6])
+    np.testing.assert_array_equal(a, faces[:2])
+    other = _masked_skin(faces, np.ones(7, bool).tobytes())[1]
+    assert other is not a and len(other) == 4
