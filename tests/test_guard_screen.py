@@ -96,3 +96,26 @@ def test_the_warm_up_compiles_the_per_frame_search_for_the_guards_coordinates():
     C, _ = plan.collider_planes(s.vertices[None, None].astype(np.float32))
     nearest.warm_up()
     assert numba.typeof(np.ascontiguousarray(C.reshape(3, 1, -1))) in [sig[0] for sig in nearest.frames_knn.signatures]
+
+
+def test_the_first_frame_starts_from_the_rest_nearest_in_the_region():
+    # ``_warm_start``: each dynamic point's first k plan candidates as positions in its region (a
+    # bound the search is exact from, whatever the vertices: the test above), -1 for a whole row
+    # where one of them lies outside the region
+    from inference.guard.push import _warm_start
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
+    verts, faces = s.vertices.astype(np.float32), s.faces
+    bone = (verts[:, 2] > 0.0).astype(int)
+    cw = np.eye(2, dtype=np.float32)[bone]
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(300, 3))
+    pts = (d / np.linalg.norm(d, axis=1, keepdims=True) * 0.205).astype(np.float32)
+    pw = np.eye(2, dtype=np.float32)[(pts[:, 2] > 0.0).astype(int)]
+    plan = GuardPlan.build(pts[None], verts[None], faces, 4, skin=(pw, cw), k_skin=2)
+    assert plan.dynamic_points is not None and len(plan.dynamic_points) > 0
+    prev = _warm_start(plan, 3)
+    assert prev.shape == (len(plan.dynamic_points), 3) and prev.dtype == np.int64
+    warm = prev[:, 0] >= 0
+    assert warm.any() and np.array_equal(warm, (prev >= 0).all(1))
+    np.testing.assert_array_equal(plan.dynamic_region[prev[warm]], plan.candidates[0][plan.dynamic_points[warm], :3])

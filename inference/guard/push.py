@@ -150,8 +150,9 @@ def _push_planes(
     dynamic = plan is not None and plan.dynamic_points is not None
     step = max(1, _BLOCK_ELEMENTS // max(N * (k + (DYNAMIC_K if dynamic else 0)), 1))
     out = np.empty((3, BT, N), np.float32)
-    # the dynamic points' nearest region vertices in the last frame done (none yet)
-    prev = np.full((len(plan.dynamic_points), int(min(DYNAMIC_K, len(plan.dynamic_region)))), -1, np.int64) if dynamic else None
+    # the dynamic points' nearest region vertices in the last frame done; before the first frame,
+    # their rest-pose nearest (the bound of the first frame's search: ``_warm_start``)
+    prev = _warm_start(plan, int(min(DYNAMIC_K, len(plan.dynamic_region)))) if dynamic else None
     for f0 in range(0, BT, step):  # blocks of frames, not a loop per frame
         f1 = min(BT, f0 + step)
         Pb = P[:, f0:f1].reshape(3, -1)
@@ -346,6 +347,20 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
         for c in range(3):  # q + margin n_q, q = p - (p - q)
             out[c, inside] = P[c, inside] - rb[c][inside] + scale * n[c][inside]
     return out
+
+
+def _warm_start(plan: GuardPlan, k: int) -> np.ndarray:
+    """(Nd, k) int64: for each dynamic point, the positions in its region of its k rest-pose nearest
+    candidates (the plan's first k), or -1 where one of them is not in the region. Any k region
+    vertices bound a point's k nearest in a frame (``inference.guard.nearest``: rho, the farthest
+    of them there), and the rest-pose nearest usually stay near (the point's own part): the first
+    frame of a request searches a small ball instead of shells of cells from nothing (a 1-frame
+    T-shirt + jacket: the search 5.9 -> 2.8 ms, the rate of a warm frame)."""
+    slot = np.full(len(plan.collider_ids), -1, np.int64)
+    slot[plan.dynamic_region] = np.arange(len(plan.dynamic_region))
+    prev = slot[plan.candidates[0][plan.dynamic_points, :k]]
+    prev[(prev < 0).any(1)] = -1
+    return np.ascontiguousarray(prev, np.int64)
 
 
 def _dynamic_candidates(Pb: np.ndarray, C: np.ndarray, flat: np.ndarray, plan: GuardPlan, f0: int, f1: int,
