@@ -13,7 +13,7 @@ import json
 import logging
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 from inference import layers, repair, strain, winding
@@ -245,8 +245,8 @@ class Runtime:
         """Encode one request's result as glb or npz."""
         request, shape, motion, o = p.request, p.shape, p.motion, p.request.options
         t_export = time.perf_counter()
-        if request.motion.in_place:
-            result = without_root_travel(result)
+        if request.motion.in_place:  # (the export poses the body from the bones: its skinned frames are not shifted)
+            result = without_root_travel(replace(result, body_vertices=None))
         # what each garment ran (its resolved method), not the request's options (null: the default)
         versions = used_model_versions(o, {g.asset.id: g.method for g in result.garments})
         metadata = {
