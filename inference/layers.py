@@ -60,6 +60,7 @@ from inference import mesh_kernels
 from inference.errors import InputShapeError
 from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
 from inference.mesh import content_key, faces_touching, per_array
+from inference.nearness import nearest
 from inference.winding import check_faces
 
 # How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
@@ -141,8 +142,9 @@ def body_anchors(rest_garment: np.ndarray, rest_body: np.ndarray, tree: cKDTree 
     rest_garment = np.asarray(rest_garment)
     if rest_garment.ndim != 2 or rest_garment.shape[1] != 3:
         raise InputShapeError("rest_garment", "(N, 3)", rest_garment.shape)
+    rest_body = np.asarray(rest_body)
     tree = tree or cKDTree(np.asarray(rest_body, np.float64))
-    return tree.query(np.asarray(rest_garment, np.float64))[1].astype(np.int64)
+    return nearest(tree, rest_body, np.arange(len(rest_body)), rest_garment, 1)[:, 0]
 
 
 class LayerFrames:

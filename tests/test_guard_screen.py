@@ -120,21 +120,3 @@ def test_the_first_frame_starts_from_the_rest_nearest_in_the_region():
     assert warm.any() and np.array_equal(warm, (prev >= 0).all(1))
     np.testing.assert_array_equal(plan.dynamic_region[prev[warm]], plan.candidates[0][plan.dynamic_points[warm], :3])
 
-
-def test_plan_nearest_candidates_equal_the_kd_trees_near_and_far():
-    # ``_nearest``: the grid search where a point's k nearest lie within its radius, the tree for
-    # the others (far points, and float64 vertices, go to the tree alone)
-    from inference.guard.plan import NEAREST_RADIUS_M, _nearest
-
-    s = trimesh.creation.icosphere(subdivisions=4, radius=0.15)
-    verts = s.vertices.astype(np.float32)
-    rng = np.random.default_rng(4)
-    usable = np.sort(rng.choice(len(verts), len(verts) - 50, replace=False))
-    tree = cKDTree(verts[usable])
-    d = rng.normal(size=(600, 3))
-    r = rng.uniform(0.15, 0.15 + 3 * NEAREST_RADIUS_M, (600, 1))
-    q = (d / np.linalg.norm(d, axis=1, keepdims=True) * r).astype(np.float32)
-    for k in (1, 2, 4):
-        want = usable[tree.query(q, k=k)[1].reshape(len(q), k)]
-        np.testing.assert_array_equal(_nearest(tree, verts, usable, q, k), want)
-        np.testing.assert_array_equal(_nearest(tree, verts.astype(np.float64), usable, q, k), want)

@@ -1,7 +1,8 @@
-"""``inference.nearness``: the exact "some point nearer than r" test."""
+"""``inference.nearness``: the exact "some point nearer than r" test and the k nearest."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from inference.nearness import first_per_cell, within
 
@@ -21,3 +22,29 @@ def test_within_equals_the_distance_matrix_whatever_the_cell():
 def test_first_per_cell_keeps_the_lowest_index_of_each_cell():
     x = np.array([[0.01, 0, 0], [0.5, 0, 0], [0.02, 0.01, 0], [0.51, 0.02, 0.03], [-0.01, 0, 0]], np.float32)
     assert sorted(first_per_cell(x, 0.1).tolist()) == [0, 1, 4]
+
+
+def test_nearest_equals_the_kd_trees_near_and_far():
+    # the grid search where a query's k nearest lie within its radius, the tree for the others (far
+    # queries, and float64 vertices, go to the tree alone)
+    import trimesh
+
+    from inference.nearness import GRID_RADIUS_M, nearest
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=0.15)
+    verts = s.vertices.astype(np.float32)
+    rng = np.random.default_rng(4)
+    ids = np.sort(rng.choice(len(verts), len(verts) - 50, replace=False))
+    tree = cKDTree(verts[ids])
+    d = rng.normal(size=(600, 3))
+    r = rng.uniform(0.15, 0.15 + 3 * GRID_RADIUS_M, (600, 1))
+    q = (d / np.linalg.norm(d, axis=1, keepdims=True) * r).astype(np.float32)
+    for k in (1, 2, 4):
+        want = ids[tree.query(q, k=k)[1].reshape(len(q), k)]
+        np.testing.assert_array_equal(nearest(tree, verts, ids, q, k), want)
+        np.testing.assert_array_equal(nearest(tree, verts.astype(np.float64), ids, q, k), want)
+    ro = ids.copy()
+    ro.flags.writeable = False  # a kept topology's ids
+    np.testing.assert_array_equal(nearest(tree, verts, ro, q, 2), ids[tree.query(q, k=2)[1]])
+    wide = q * np.float32(40.0)  # a box of ~12 m: more cells than the grid may have, the tree answers
+    np.testing.assert_array_equal(nearest(tree, verts, ids, wide, 1), ids[tree.query(wide, k=1)[1]][:, None])

@@ -26,37 +26,7 @@ from inference.guard.constants import (
 )
 from inference.guard.push import _check_frames, _planes
 from inference.mesh import content_key, major_components, per_array, vertex_face_incidence, vertex_normals
-from inference.nearness import first_per_cell, within
-from inference.repair_kernels import frame_knn
-
-
-# The grid search of a plan's nearest candidates (``_nearest``): box padding, cell and the radius a
-# point's search covers before it leaves the point to the KD-tree, metres.
-NEAREST_PAD_M = 0.05
-NEAREST_CELL_M = 0.025
-NEAREST_RADIUS_M = 0.03
-
-
-def _nearest(tree: cKDTree, collider: np.ndarray, usable: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
-    """The k usable collider vertices nearest to each point q (N, 3), nearest first: (N, k) ids.
-
-    ``tree`` is the KD-tree of collider[usable] (collider (M, 3)). For float32 vertices, the grid
-    search of ``inference.repair_kernels.frame_knn`` answers the points whose k nearest lie within
-    NEAREST_RADIUS_M (exact: the KD-tree's float64 distances), the tree the others. A learned
-    T-shirt's plan (5,148 points at rest, built every request): 3.2 -> 2.0 ms (k = 4), 2.7 -> 1.9
-    ms (k = 2); a jacket's points, mostly farther from the skin, cost about what the tree does."""
-    N = len(q)
-    if collider.dtype != np.float32 or not N:
-        return usable[tree.query(q, k=k)[1].reshape(N, k)]
-    # a writable copy: a kept topology's ids are read-only, a type numba compiles apart from the one
-    # ``inference.motion.self_contact.warm_up`` compiles at start-up
-    ids = np.array(usable, np.int64)
-    nn, found = frame_knn(np.ascontiguousarray(collider[None]), np.zeros(1, np.int64), np.array([0, N], np.int64),
-                          np.ascontiguousarray(q, np.float64), ids, k, NEAREST_PAD_M, NEAREST_CELL_M, NEAREST_RADIUS_M)
-    miss = np.flatnonzero(~found)
-    if len(miss):
-        nn[miss] = usable[tree.query(q[miss], k=k)[1].reshape(len(miss), k)]
-    return nn
+from inference.nearness import first_per_cell, nearest, within
 
 
 def _gather(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -300,7 +270,7 @@ class GuardPlan:
             if pw.shape[0] != N or cw.shape[0] != M or pw.shape[1] != cw.shape[1]:
                 raise InputShapeError("skin", f"((N={N}, J), (M={M}, J))", (pw.shape, cw.shape))
         rest = _collider_rest(collider_rest, faces, bnd, usable, cw if skinned else None)
-        near = np.stack([_nearest(rest.trees[b], collider_rest[b], usable, points_rest[b], k) for b in range(B)])
+        near = np.stack([nearest(rest.trees[b], collider_rest[b], usable, points_rest[b], k) for b in range(B)])
         n_rest = rest.normals
         if bnd.any():
             # open collider (a garment): the points lie on its outer side in the reference pose
@@ -314,7 +284,7 @@ class GuardPlan:
         if k_ahead > 0:
             q = points_rest + ahead_m * n0
             kk = int(min(k_ahead, len(usable)))
-            parts.append(np.stack([_nearest(rest.trees[b], collider_rest[b], usable, q[b], kk) for b in range(B)]))
+            parts.append(np.stack([nearest(rest.trees[b], collider_rest[b], usable, q[b], kk) for b in range(B)]))
         if skinned:
             # the nearest collider vertices skinned mostly to another bone than the point: the
             # parts that a bending joint can bring against it (arm vs torso at the armpit)
