@@ -60,7 +60,7 @@ from inference import mesh_kernels
 from inference.errors import InputShapeError
 from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
 from inference.mesh import content_key, faces_touching, per_array
-from inference.nearness import nearest
+from inference.nearness import near, nearest
 from inference.winding import check_faces
 
 # How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
@@ -305,16 +305,15 @@ class LayerContacts:
     def build(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray], radius_m: float | None = None) -> "LayerContacts":
         """rest_layers : each (N_i, 3) the layer's rest form ; faces : each (F_i, 3)."""
         radius_m = CONTACT_M if radius_m is None else radius_m
-        rest = [np.asarray(x, np.float64) for x in rest_layers]
-        trees = [cKDTree(x) for x in rest]
+        rest = [np.asarray(x) for x in rest_layers]
         outer_vertices, inner_faces = {}, {}
         for i in range(len(rest)):
             for j in range(i + 1, len(rest)):
-                near_j = np.isfinite(trees[i].query(rest[j], distance_upper_bound=radius_m)[0])  # layer j near layer i
+                near_j = near(rest[i], rest[j], radius_m)  # layer j near layer i (inference.nearness: a grid search)
                 on_face = np.zeros(len(near_j), bool)
                 on_face[np.asarray(faces[j]).ravel()] = True
                 outer_vertices[i, j] = np.flatnonzero(near_j & on_face)
-                near_i = np.isfinite(trees[j].query(rest[i], distance_upper_bound=radius_m)[0])
+                near_i = near(rest[j], rest[i], radius_m)
                 inner_faces[i, j] = np.flatnonzero(near_i[np.asarray(faces[i])].any(1))
         return cls(outer_vertices, inner_faces)
 

@@ -10,6 +10,8 @@ only the queries in between ask every point. The answer is the bounded nearest q
 point (the same float64 distances, compared with r).
 
 ``nearest``: the k nearest vertices, from a grid search where they lie near (a garment on the skin).
+``near``: ``within`` for queries that mostly have a point near them (two layers of an outfit), by
+the same grid search.
 
 Units: metres. Arrays: (n, 3) float32 or float64 points.
 """
@@ -83,3 +85,30 @@ def nearest(tree: cKDTree, vertices: np.ndarray, ids: np.ndarray, queries: np.nd
     if len(miss):
         nn[miss] = ids[tree.query(queries[miss], k=k)[1].reshape(len(miss), k)]
     return nn
+
+
+# ``near``'s grid cell, metres (for distances of a few centimetres).
+NEAR_CELL_M = 0.04
+
+
+def near(points: np.ndarray, queries: np.ndarray, distance_m: float) -> np.ndarray:
+    """(Q,) bool: some point (N, 3) lies nearer than ``distance_m`` to the query (Q, 3): ``within``'s
+    answer (the same float64 distances), from the grid search of
+    ``inference.repair_kernels.frame_knn`` (each query's nearest point, its search stopped at
+    ``distance_m``) for float32 points, a KD-tree for others or for queries spread over more than
+    GRID_MAX_CELLS cells. Where most queries have a point near them (a T-shirt's and a jacket's
+    vertices within 6 cm of the other layer: 98 % and 69 %), 2.0 + 2.3 ms against 3.9 + 3.9 for a
+    KD-tree of each layer and its bounded queries."""
+    queries = np.asarray(queries)
+    N, Q = len(points), len(queries)
+    if not N or not Q:
+        return np.zeros(Q, bool)
+    reach = float(distance_m) + 1e-6  # the box and the search reach a micrometre past the distance
+    span = queries.max(0) - queries.min(0) + 2 * reach
+    q = np.ascontiguousarray(queries, np.float64)
+    if points.dtype != np.float32 or not float(np.prod(span / NEAR_CELL_M + 1)) <= GRID_MAX_CELLS:  # (NaN: the tree)
+        return np.isfinite(cKDTree(np.asarray(points, np.float64)).query(q, distance_upper_bound=distance_m)[0])
+    nn, found = frame_knn(np.ascontiguousarray(points[None]), np.zeros(1, np.int64), np.array([0, Q], np.int64), q,
+                          np.arange(N, dtype=np.int64), 1, reach, NEAR_CELL_M, reach)
+    nearest_point = np.asarray(points, np.float64)[np.where(found, nn[:, 0], 0)]
+    return found & (np.sqrt(((q - nearest_point) ** 2).sum(-1)) < distance_m)

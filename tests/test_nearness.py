@@ -48,3 +48,23 @@ def test_nearest_equals_the_kd_trees_near_and_far():
     np.testing.assert_array_equal(nearest(tree, verts, ro, q, 2), ids[tree.query(q, k=2)[1]])
     wide = q * np.float32(40.0)  # a box of ~12 m: more cells than the grid may have, the tree answers
     np.testing.assert_array_equal(nearest(tree, verts, ids, wide, 1), ids[tree.query(wide, k=1)[1]][:, None])
+
+
+def test_near_equals_within_and_the_distance_matrix():
+    from inference.nearness import near
+
+    rng = np.random.default_rng(9)
+    points = rng.uniform(-0.3, 0.3, (800, 3)).astype(np.float32)
+
+    def nearest_distance(q):
+        return np.sqrt(((q[:, None].astype(np.float64) - points[None].astype(np.float64)) ** 2).sum(-1)).min(1)
+
+    queries = rng.uniform(-0.5, 0.5, (2500, 3)).astype(np.float32)
+    wide = queries * np.float32(60.0)  # a box of ~60 m: more cells than the grid may have, the tree answers
+    d, d_wide = nearest_distance(queries), nearest_distance(wide)
+    for r in (0.01, 0.06, 0.2):
+        assert 0 < (d < r).sum() < len(d)
+        np.testing.assert_array_equal(near(points, queries, r), d < r)
+        np.testing.assert_array_equal(near(points.astype(np.float64), queries, r), d < r)  # the tree
+        np.testing.assert_array_equal(near(points, wide, r), d_wide < r)
+    assert near(points[:0], queries, 0.1).shape == (len(queries),) and not near(points[:0], queries, 0.1).any()
