@@ -62,6 +62,16 @@ def within(points: np.ndarray, queries: np.ndarray, distance_m: float, cell_m: f
     return out
 
 
+def _kernel_arrays(vertices: np.ndarray, ids: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``frame_knn``'s arrays for one frame: C-contiguous and writable, the types
+    ``inference.motion.self_contact.warm_up`` compiles at start-up (numba compiles a read-only
+    array, such as a kept topology's, as another type: ~1.5 s inside a request)."""
+    flags = ["C", "W"]
+    q = np.require(queries, np.float64, flags)
+    return (np.require(vertices[None], np.float32, flags), np.zeros(1, np.int64), np.array([0, len(q)], np.int64), q,
+            np.require(ids, np.int64, flags))
+
+
 def nearest(tree: cKDTree, vertices: np.ndarray, ids: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
     """The k vertices of ``ids`` nearest to each query (N, 3), nearest first: (N, k) vertex ids.
 
@@ -76,11 +86,7 @@ def nearest(tree: cKDTree, vertices: np.ndarray, ids: np.ndarray, queries: np.nd
     span = queries.max(0) - queries.min(0) + 2 * GRID_PAD_M if N else np.zeros(3)
     if vertices.dtype != np.float32 or not N or not float(np.prod(span / GRID_CELL_M + 1)) <= GRID_MAX_CELLS:  # (NaN: the tree)
         return ids[tree.query(queries, k=k)[1].reshape(N, k)]
-    # a writable copy: a kept topology's ids are read-only, a type numba compiles apart from the one
-    # ``inference.motion.self_contact.warm_up`` compiles at start-up
-    own = np.array(ids, np.int64)
-    nn, found = frame_knn(np.ascontiguousarray(vertices[None]), np.zeros(1, np.int64), np.array([0, N], np.int64),
-                          np.ascontiguousarray(queries, np.float64), own, k, GRID_PAD_M, GRID_CELL_M, GRID_RADIUS_M)
+    nn, found = frame_knn(*_kernel_arrays(vertices, ids, queries), k, GRID_PAD_M, GRID_CELL_M, GRID_RADIUS_M)
     miss = np.flatnonzero(~found)
     if len(miss):
         nn[miss] = ids[tree.query(queries[miss], k=k)[1].reshape(len(miss), k)]
@@ -108,7 +114,6 @@ def near(points: np.ndarray, queries: np.ndarray, distance_m: float) -> np.ndarr
     q = np.ascontiguousarray(queries, np.float64)
     if points.dtype != np.float32 or not float(np.prod(span / NEAR_CELL_M + 1)) <= GRID_MAX_CELLS:  # (NaN: the tree)
         return np.isfinite(cKDTree(np.asarray(points, np.float64)).query(q, distance_upper_bound=distance_m)[0])
-    nn, found = frame_knn(np.ascontiguousarray(points[None]), np.zeros(1, np.int64), np.array([0, Q], np.int64), q,
-                          np.arange(N, dtype=np.int64), 1, reach, NEAR_CELL_M, reach)
+    nn, found = frame_knn(*_kernel_arrays(points, np.arange(N, dtype=np.int64), q), 1, reach, NEAR_CELL_M, reach)
     nearest_point = np.asarray(points, np.float64)[np.where(found, nn[:, 0], 0)]
     return found & (np.sqrt(((q - nearest_point) ** 2).sum(-1)) < distance_m)

@@ -68,3 +68,23 @@ def test_near_equals_within_and_the_distance_matrix():
         np.testing.assert_array_equal(near(points.astype(np.float64), queries, r), d < r)  # the tree
         np.testing.assert_array_equal(near(points, wide, r), d_wide < r)
     assert near(points[:0], queries, 0.1).shape == (len(queries),) and not near(points[:0], queries, 0.1).any()
+
+
+def test_read_only_inputs_reach_the_kernel_as_the_warmed_types():
+    # kept rest forms and topologies are read-only; numba would compile them as other types
+    from inference.nearness import near, nearest
+    from inference.repair_kernels import frame_knn
+
+    rng = np.random.default_rng(5)
+    verts = rng.uniform(-0.2, 0.2, (300, 3)).astype(np.float32)
+    q = (verts[:50] + np.float32(0.01)).astype(np.float32)
+    ids = np.arange(300)
+    tree = cKDTree(verts)
+    nearest(tree, verts, ids, q, 2)
+    near(verts, q, 0.05)
+    before = len(frame_knn.signatures)
+    for a in (verts, q, ids):
+        a.flags.writeable = False
+    nearest(tree, verts, ids, q, 2)
+    near(verts, q, 0.05)
+    assert len(frame_knn.signatures) == before
