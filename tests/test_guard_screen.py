@@ -1,5 +1,6 @@
 """Collision guard shortcuts against the naive versions: the screen, the plan's searches."""
 import numpy as np
+import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
@@ -54,16 +55,17 @@ def test_skin_candidates_are_the_nearest_of_another_bone():
         np.testing.assert_array_equal(np.sort(skin[rows], 1), np.sort(want, 1))
 
 
-def test_per_frame_nearest_equal_a_kd_tree_warm_and_cold():
+@pytest.mark.parametrize("k", [3, 1, 5])
+def test_per_frame_nearest_equal_a_kd_tree_warm_and_cold(k):
     # a moving sphere's vertices as the region, points around it: every frame's k nearest equal
     # the KD-tree's (by distance), from a cold start, from the last frame's answers (warm), from
     # answers of another region (a bound wider than COLD_RHO_M: cold again), and for points far
-    # outside the region's box
+    # outside the region's box; k = 3 (the guard's) runs its own scan, other k the general one
     from inference.guard import nearest
 
     s = trimesh.creation.icosphere(subdivisions=3, radius=0.12)
     rng = np.random.default_rng(1)
-    F, S, N, k = 5, len(s.vertices), 400, 3
+    F, S, N = 5, len(s.vertices), 400
     shift = np.cumsum(rng.normal(0, 0.01, (F, 3)), 0)
     C3 = np.ascontiguousarray(np.moveaxis(s.vertices[None] + shift[:, None], 2, 0))  # (3, F, S)
     region = np.flatnonzero(s.vertices[:, 2] > -0.05)
@@ -79,9 +81,20 @@ def test_per_frame_nearest_equal_a_kd_tree_warm_and_cold():
         found = nearest.frames_knn(C3, region, P, dyn, N, 0, F, k, nearest.CELL_M, nearest.COLD_RHO_M, prev)
         for f in range(F):
             pts, q = C3[:, f, region].T, P[:, f * N + dyn].T
-            ref = cKDTree(pts).query(q, k=k)[0]
+            ref = cKDTree(pts).query(q, k=k)[0].reshape(len(q), k)
             np.testing.assert_allclose(np.linalg.norm(pts[found[f]] - q[:, None], axis=-1), ref, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(prev, found[-1])  # the state carried to the next block
+
+
+def test_per_frame_nearest_of_a_region_smaller_than_k_marks_the_missing():
+    # two region vertices, k = 3: each point gets both, nearest first, then -1 (not another row)
+    from inference.guard import nearest
+
+    C3 = np.ascontiguousarray(np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [5.0, 5.0, 5.0]]).T[:, None, :])  # (3, 1 frame, 3)
+    P = np.ascontiguousarray(np.array([[0.09, 0.0, 0.0], [-0.02, 0.01, 0.0]]).T)
+    prev = np.full((2, 3), -1, np.int64)
+    found = nearest.frames_knn(C3, np.array([0, 1]), P, np.arange(2), 2, 0, 1, 3, nearest.CELL_M, nearest.COLD_RHO_M, prev)
+    np.testing.assert_array_equal(found[0], [[1, 0, -1], [0, 1, -1]])
 
 
 def test_the_warm_up_compiles_the_per_frame_search_for_the_guards_coordinates():
