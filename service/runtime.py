@@ -32,6 +32,7 @@ from inference.learned import LearnedModels
 from inference.motion.clips import ClipLibrary
 from inference.motion.importer import AsfAmcSpec, BvhSpec, ClipSpec, MotionImporter, MotionLimits, MotionSpec, PosesSpec, shape_of
 from inference.pipeline import DrapeOptions, DrapeResult, PoseSequence, drape_chunks, without_root_travel
+from service import allocator
 from service.bodies import BodyService
 from service.config import Settings
 from service.errors import ProblemDetail, problem_from_exception
@@ -168,6 +169,7 @@ class Runtime:
         canonical = CanonicalModels(settings.assets_dir / "body" / "diffused.npz", settings.assets_dir / "models")
         if learned:
             loaded += [f"{g} (canonical)" for g in canonical.load_all(catalog.ids())]
+            allocator.keep_freed_memory()  # a request's arrays reuse the last one's pages (service.allocator)
             winding.warm_up()  # the exact inside test's compiled kernels, before the first request
             repair.warm_up()  # the final stage's
             layers.warm_up()  # and the layer stage's
