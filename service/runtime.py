@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 from inference import layers, repair, strain, winding
-from inference.guard import nearest
+from inference.guard import nearest, push_kernels
 from inference.motion import self_contact
 from inference.asset_digest import AssetDigest
 from inference.batch import DrapeJob, concatenate_results, drape_many
@@ -175,6 +175,7 @@ class Runtime:
             layers.warm_up()  # and the layer stage's
             strain.warm_up()  # and the compression limit's (learned canonical garments)
             nearest.warm_up()  # and the guard's per-frame nearest body vertices
+            push_kernels.warm_up()  # and its plane push
             self_contact.warm_up()  # and the arm lift's nearest torso points
         runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
         log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",

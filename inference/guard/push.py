@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from inference.errors import InputShapeError, InputValueError
-from inference.guard import nearest
+from inference.guard import nearest, push_kernels
 from inference.guard.constants import (
     DEFAULT_MARGIN_M,
     DYNAMIC_K,
@@ -211,69 +211,17 @@ def _screen_planes(P: np.ndarray, Nrm: np.ndarray, offset: np.ndarray, flat: np.
 
 
 def _push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m, iterations):
-    """Screened points: P (3, L), flat (k, L) candidate indices into C, Nrm (3, .), across (k, L).
-
-    Each pass after the first revisits only the points the previous one moved (the others are
-    where they were, so a pass would decide the same for them again). Returns (3, L) float32.
-    """
-    P = P.astype(np.float32, copy=True)
-    live = np.arange(P.shape[1])
-    for _ in range(max(int(iterations), 1)):
-        if len(live) == 0:
-            break
-        delta, na, moved = _push_pass(P[:, live], C, Nrm, flat[:, live], None if across is None else across[:, live],
-                                      M, margin_m, max_push_m, boundary, reach_m)
-        live = live[moved]
-        for c in range(3):
-            P[c, live] += delta * na[c]  # p' = p + delta n*
+    """Screened points: P (3, L), flat (k, L) candidate indices into C, Nrm (3, .), across (k, L):
+    the plane push of ``push_outside``'s formula, ``iterations`` passes, each point passing again
+    only while it moves (compiled: ``inference.guard.push_kernels``). Returns (3, L) float32."""
+    P = np.array(P, np.float32, order="C", copy=True)
+    push_kernels.push_points(
+        P, np.ascontiguousarray(C, np.float32), np.ascontiguousarray(Nrm, np.float32), np.ascontiguousarray(flat, np.int64),
+        np.zeros((0, 0), bool) if across is None else np.ascontiguousarray(across, bool), int(M), np.float32(margin_m),
+        np.float32(np.inf if max_push_m is None else max_push_m), np.zeros(0, bool) if boundary is None else np.ascontiguousarray(boundary, bool),
+        np.float32(reach_m**2), max(int(iterations), 1), np.float32(_TANGENT_M**2), np.float32(_FARTHER_M), np.float32(_OPPOSING_COS),
+        np.float32(_SQUEEZE_RADIUS_M**2))
     return P
-
-
-def _push_pass(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m):
-    """One pass over points P (3, L): returns the push lengths delta (A,) != 0 and directions
-    n* (3 x (A,)) of the A points it moves, and their positions ``moved`` (A,) in L."""
-    L = P.shape[1]
-    G = [np.take(C[c], flat) for c in range(3)]  # (k, L) candidate coordinates
-    rows = np.arange(L, dtype=np.intp)
-    Gn = [np.take(Nrm[c], flat) for c in range(3)]  # (k, L) candidate normals n_j
-    D = [P[c] - G[c] for c in range(3)]  # p - c_j
-    d2 = D[0] * D[0] + D[1] * D[1] + D[2] * D[2]
-    s_all = D[0] * Gn[0] + D[1] * Gn[1] + D[2] * Gn[2]  # s_j = (p - c_j) . n_j
-    j = np.argmin(d2, axis=0)  # closest candidate c*
-    # ... unless p lies behind the plane of a candidate it projects onto (tangential offset <
-    # _TANGENT_M) that is not much farther (< _FARTHER_M more): then p is inside that part,
-    # and the nearest vertex (outside an arm, say) misjudges it; take the deepest such plane.
-    s_near = np.take_along_axis(s_all, j[None], 0)[0]
-    dmin = np.sqrt(np.take_along_axis(d2, j[None], 0)[0])
-    behind = (s_all < 0) & (d2 - s_all * s_all < _TANGENT_M**2) & (np.sqrt(d2) <= dmin + _FARTHER_M)
-    deep = np.argmin(np.where(behind, s_all, np.inf), axis=0)
-    j = np.where(behind.any(axis=0) & (np.take_along_axis(s_all, deep[None], 0)[0] < s_near), deep, j)
-    pick = j * L + rows
-    sel = np.take(flat, pick)
-    ns = [np.take(Gn[c], pick) for c in range(3)]  # n*
-    s = np.take(s_all, pick)  # s = (p - c*) . n*
-    delta = margin_m - s
-    act = np.flatnonzero(delta > 0)  # only these need a push
-    delta, s_a = delta[act], s[act]
-    na = [ns[c][act] for c in range(3)]
-    Gna = [Gn[c][:, act] for c in range(3)]
-    a = na[0] * Gna[0] + na[1] * Gna[1] + na[2] * Gna[2]  # n* . n_j
-    s_j = s_all[:, act]
-    # a surface ahead of p (in the push direction), facing it and close in this frame squeezes:
-    # balanced push delta_j = (s_j - s*) / (1 - n*.n_j) (the module docstring)
-    ahead = -(D[0][:, act] * na[0] + D[1][:, act] * na[1] + D[2][:, act] * na[2]) > 0
-    if across is not None:
-        ahead = ahead | across[:, act]
-    opposing = ahead & (a < _OPPOSING_COS) & (d2[:, act] < _SQUEEZE_RADIUS_M**2)
-    bal = np.where(opposing, (s_j - s_a) / np.maximum(1.0 - a, 1.0), np.inf).min(axis=0)
-    delta = np.minimum(delta, np.maximum(bal, 0.0))
-    if max_push_m is not None:
-        delta = np.minimum(delta, max_push_m)
-    if boundary is not None:
-        tangential2 = d2[j[act], act] - s_a * s_a
-        delta = np.where(boundary[sel[act] % M] & (tangential2 > reach_m**2), 0.0, delta)
-    moved = delta != 0
-    return delta[moved], [n[moved] for n in na], act[moved]
 
 
 def _ring_closest(ap, centre, C, other):

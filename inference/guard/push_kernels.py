@@ -1,0 +1,103 @@
+"""The guard's plane push, compiled (numba, one thread): ``push._push_block`` point by point.
+
+The maths is ``inference.guard``'s and ``push._push_pass``'s: for a point p and its candidates
+c_j with normals n_j (j < k),
+
+    d2_j = |p - c_j|^2,  s_j = (p - c_j) . n_j,  j* = argmin d2_j (the first of equal ones),
+
+unless p lies behind the plane of a candidate it projects onto (d2_j - s_j^2 < _TANGENT_M^2, s_j <
+0) no more than _FARTHER_M farther than c_j*: then the deepest such plane (least s_j) where it is
+deeper than j*'s. The push delta = margin - s_j* (> 0), shortened by the squeeze of the candidates
+ahead of p that face it (min (s_j - s*) / max(1 - n*.n_j, 1), not below 0), by ``max_push`` and
+by the open collider's border; p <- p + delta n*, ``iterations`` times while it moves.
+
+Every quantity in float32 in numpy's order of operations (no fast-math: no fused multiply-adds),
+the constants rounded to float32 as numpy rounds a Python float against a float32 array, so that
+the result is bitwise the numpy version's (``tests/test_guard_screen.py``). The numpy version made
+~20 (k, L) temporaries per pass: ~1.1 ms an outfit-frame of T-shirt + jacket, ~0.3 compiled.
+
+Units: metres. Arrays: float32 coordinate planes (3, n), int64 flat candidate ids, bool masks.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_JIT = {"nogil": True, "cache": True, "fastmath": False}
+
+
+@numba.njit(**_JIT)
+def push_points(P, C, Nrm, flat, across, M, margin, max_push, boundary, reach2, iterations, tangent2, farther, opposing_cos,
+                squeeze2):
+    """Push the points P (3, L) float32 (in place) out of their candidates' planes.
+
+    C, Nrm    : (3, .) float32 candidate positions and unit normals, flat (k, L) int64 ids into them
+    across    : (k, L) bool, candidates across a gap (they limit the push), or (0, 0): none
+    M         : the collider's vertex count (a flat id mod M is the vertex); boundary (M,) bool its
+                border vertices, or (0,): none; reach2 float32, the squared border reach
+    margin, max_push, tangent2, farther, opposing_cos, squeeze2 : float32 (max_push inf: none)
+    """
+    k, L = flat.shape
+    has_across = across.shape[0] > 0
+    has_boundary = boundary.shape[0] > 0
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    d2 = np.empty(k, np.float32)
+    s = np.empty(k, np.float32)
+    for q in range(L):
+        x, y, z = P[0, q], P[1, q], P[2, q]
+        for _ in range(iterations):
+            j = 0
+            for c in range(k):
+                f = flat[c, q]
+                dx, dy, dz = x - C[0, f], y - C[1, f], z - C[2, f]
+                d2[c] = dx * dx + dy * dy + dz * dz
+                s[c] = dx * Nrm[0, f] + dy * Nrm[1, f] + dz * Nrm[2, f]
+                if d2[c] < d2[j]:
+                    j = c
+            s_near = s[j]
+            reach = np.sqrt(d2[j]) + farther
+            deep = -1
+            for c in range(k):
+                if s[c] < zero and d2[c] - s[c] * s[c] < tangent2 and np.sqrt(d2[c]) <= reach:
+                    if deep < 0 or s[c] < s[deep]:
+                        deep = c
+            if deep >= 0 and s[deep] < s_near:
+                j = deep
+            f = flat[j, q]
+            nx, ny, nz = Nrm[0, f], Nrm[1, f], Nrm[2, f]
+            s_star = s[j]
+            delta = margin - s_star
+            if not delta > zero:
+                break
+            bal = np.float32(np.inf)
+            for c in range(k):
+                g = flat[c, q]
+                dx, dy, dz = x - C[0, g], y - C[1, g], z - C[2, g]
+                ahead = dx * nx + dy * ny + dz * nz < zero
+                if has_across:
+                    ahead = ahead or across[c, q]
+                a = nx * Nrm[0, g] + ny * Nrm[1, g] + nz * Nrm[2, g]
+                if ahead and a < opposing_cos and d2[c] < squeeze2:
+                    bal = min(bal, (s[c] - s_star) / max(one - a, one))
+            delta = min(delta, max(bal, zero))
+            delta = min(delta, max_push)
+            if has_boundary and boundary[f % M] and d2[j] - s_star * s_star > reach2:
+                delta = zero
+            if delta == zero:
+                break
+            x += delta * nx
+            y += delta * ny
+            z += delta * nz
+        P[0, q], P[1, q], P[2, q] = x, y, z
+
+
+def warm_up() -> None:
+    """Compile the kernel (or load numba's cache) on one point and one candidate, with the types
+    every call passes (``push._push_block``), so that no request pays the compilation (~1 s)."""
+    P = np.zeros((3, 1), np.float32)
+    C = np.ascontiguousarray(np.array([[0.0], [0.0], [0.01]], np.float32))
+    Nrm = np.ascontiguousarray(np.array([[0.0], [0.0], [1.0]], np.float32))
+    f32 = np.float32
+    push_points(P, C, Nrm, np.zeros((1, 1), np.int64), np.zeros((0, 0), bool), 1, f32(0.004), f32(np.inf), np.zeros(0, bool),
+                f32(0.0), 2, f32(1e-4), f32(0.02), f32(-0.5), f32(4e-4))
