@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from inference.guard.constants import _FARTHER_M, _OPPOSING_COS, _SQUEEZE_RADIUS_M, _TANGENT_M
-from inference.guard.push import _push_block
+from inference.guard.push import _push_block, _screen_tolerance
 
 
 def _numpy_push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m, iterations):
@@ -73,6 +73,19 @@ def _numpy_push_pass(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary,
     return delta[moved], [n[moved] for n in na], act[moved]
 
 
+def _screen_planes(P: np.ndarray, Nrm: np.ndarray, offset: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """min_j s_j = min_j (p . n_j - o_j) per point: P (3, L), flat (k, L) into Nrm (3, .) and
+    offset (.,) = c . n; returns (L,) float32. In-place arithmetic: no (k, L) temporaries."""
+    s = np.take(offset, flat)
+    np.negative(s, out=s)
+    t = np.empty_like(s)
+    for c in range(3):
+        np.take(Nrm[c], flat, out=t)
+        t *= P[c]
+        s += t
+    return s.min(axis=0)
+
+
 def _case(rng, L=3000, M=600, k=7):
     # two wavy sheets of collider vertices 12 mm apart facing each other (a gap between an arm and
     # the torso), noisy normals, points around them within a few cm, each with its k - 2 nearest
@@ -105,7 +118,7 @@ def test_the_compiled_push_moves_every_point_as_the_numpy_one(seed, variant):
     max_push = 0.004 if variant == "capped" else None
     for margin, iterations in ((0.004, 2), (0.01, 1), (0.0, 3)):
         ref = _numpy_push_block(P, C, Nrm, flat, across, M, margin, max_push, boundary, 0.005, iterations)
-        got = _push_block(P, C, Nrm, flat, across, M, margin, max_push, boundary, 0.005, iterations)
+        got = _push_block(P, C, Nrm, flat, across, M, margin, max_push, boundary, 0.005, iterations)[0]
         assert (ref != P).any()  # the case pushes points
         np.testing.assert_array_equal(got, ref)
 
@@ -119,5 +132,29 @@ def test_the_warm_up_compiles_the_type_every_push_passes():
     P, C, Nrm, flat = _case(np.random.default_rng(0), L=10, M=20)
     before = len(push_kernels.push_points.signatures)
     _push_block(P, C, Nrm, flat, None, 20, 0.004, None, None, 0.005, 2)
-    _push_block(P, C, Nrm, flat, np.zeros(flat.shape, bool), 20, 0.004, 0.01, np.zeros(20, bool), 0.005, 2)
+    _push_block(P, C, Nrm, flat[:4], np.zeros(flat[:4].shape, bool), 20, 0.004, 0.01, np.zeros(20, bool), 0.005, 2, extra=flat[4:],
+                offset=np.ones(20, np.float32), keep=0.01)
     assert len(push_kernels.push_points.signatures) == before
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_compiled_screen_keeps_the_points_numpy_kept_and_pushes_them_alike(seed):
+    # the guard's block: rest-pose candidates (across some) and per-frame extra ones, screened
+    # by s_j = p . n_j - c_j . n_j against margin + tolerance in numpy's float32 order
+    rng = np.random.default_rng(seed)
+    P, C, Nrm, flat = _case(rng)
+    M = C.shape[1]
+    static, extra = flat[:4], flat[4:]
+    across = rng.random(static.shape) < 0.2
+    offset = C[0] * Nrm[0] + C[1] * Nrm[1] + C[2] * Nrm[2]
+    for margin in (0.002, 0.005):
+        keep = margin + _screen_tolerance(P, C)
+        s_min = np.minimum(_screen_planes(P, Nrm, offset, static), _screen_planes(P, Nrm, offset, extra))
+        live = np.flatnonzero(s_min < keep)
+        ref = P.copy()
+        ref[:, live] = _numpy_push_block(P[:, live], C, Nrm, flat[:, live], np.concatenate([across, np.zeros(extra.shape, bool)])[:, live],
+                                         M, margin, None, None, 0.005, 2)
+        got, kept = _push_block(P, C, Nrm, static, across, M, margin, None, None, 0.005, 2, extra=extra, offset=offset, keep=keep)
+        assert 0 < len(live) < P.shape[1]  # the screen drops some points, keeps others
+        np.testing.assert_array_equal(kept, live)
+        np.testing.assert_array_equal(got, ref)

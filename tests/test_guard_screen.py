@@ -20,7 +20,7 @@ def test_screened_push_equals_pushing_every_point():
     out = push_outside(pts[None, None], verts[None, None], nrm[None], cand, DEFAULT_MARGIN_M, iterations=2)[0, 0]
     # naive: every point through every pass (no screen), flat indices of frame 0
     naive = _push_block(_planes(pts[None, None]), _planes(verts[None, None]), _planes(nrm[None]), cand.T.astype(np.intp),
-                        None, len(verts), DEFAULT_MARGIN_M, None, None, 0.0, 2)
+                        None, len(verts), DEFAULT_MARGIN_M, None, None, 0.0, 2)[0]
     np.testing.assert_array_equal(out, naive.T)
     assert 0 < (out != pts).any(1).sum() < len(pts)
 

@@ -135,9 +135,9 @@ def _push_planes(
     one (k, BT*N) block of 16 frames is ~2.5x slower per frame than blocks of 4, measured).
     Screening: a push is at most margin - s* (the caps only shorten it), so a point with
     s_j >= margin for every candidate j is never pushed; s_j = p . n_j - c_j . n_j over all
-    candidates is cheap (``_screen_planes``), and only the points it keeps (tolerance
-    ``_screen_tolerance`` for its rounding) go through ``_push_block``: the result is the same
-    as pushing every point.
+    candidates is cheap, and only the points it keeps (tolerance ``_screen_tolerance`` for its
+    rounding) are pushed: the result is the same as pushing every point. Both run compiled in
+    one pass over the points (``_push_block``).
     """
     if not margin_m >= 0:
         raise InputValueError("margin_m", f"expected >= 0, got {margin_m}")
@@ -159,29 +159,20 @@ def _push_planes(
         # flat[j, f, n] = (f0 + f) * M + candidates[b(f), n, j]: flat index into C and Nrm
         flat = ((np.arange(f0, f1, dtype=np.intp) * M)[None, :, None] + cand[:, batch_of_frame[f0:f1]]).reshape(k, -1)
         acr = None if across is None else np.moveaxis(across, 2, 0)[:, batch_of_frame[f0:f1] if across.shape[0] > 1 else np.zeros(f1 - f0, np.intp)].reshape(k, -1)
-        s_min = _screen_planes(Pb, Nrm, offset, flat)
-        if dynamic:
-            extra = _dynamic_candidates(Pb, C, flat, plan, f0, f1, prev)
-            flat = np.concatenate([flat, extra], 0)
-            s_min = np.minimum(s_min, _screen_planes(Pb, Nrm, offset, extra))
-            if acr is not None:
-                acr = np.concatenate([acr, np.zeros(extra.shape, bool)], 0)
-        live = np.flatnonzero(s_min < keep)
-        res = Pb.copy()
-        if len(live):
-            res[:, live] = _push_block(
-                Pb[:, live], C, Nrm, flat[:, live], None if acr is None else acr[:, live],
-                M, margin_m, max_push_m, boundary, reach_m, iterations,
-            )
-            if check and plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0:
-                todo = live
-                for _ in range(REFINE_PASSES):  # later passes: only the points the last one moved
-                    new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, plan.ring_valence, M, margin_m)
-                    moved = np.flatnonzero((new != res[:, todo]).any(0))
-                    res[:, todo] = new
-                    todo = todo[moved]
-                    if len(todo) == 0:
-                        break
+        extra = _dynamic_candidates(Pb, C, flat, plan, f0, f1, prev) if dynamic else np.zeros((0, flat.shape[1]), np.intp)
+        # the screen and the push of the points it keeps, compiled (``push_kernels``)
+        res, live = _push_block(Pb, C, Nrm, flat, acr, M, margin_m, max_push_m, boundary, reach_m, iterations,
+                                extra=extra, offset=offset, keep=keep)
+        if check and plan is not None and plan.ring is not None and REFINE_CANDIDATES > 0 and len(live):
+            flat = np.concatenate([flat, extra], 0) if len(extra) else flat
+            todo = live
+            for _ in range(REFINE_PASSES):  # later passes: only the points the last one moved
+                new = _refine_block(res[:, todo], C, Nrm, flat[:, todo], plan.ring, plan.ring_valence, M, margin_m)
+                moved = np.flatnonzero((new != res[:, todo]).any(0))
+                res[:, todo] = new
+                todo = todo[moved]
+                if len(todo) == 0:
+                    break
         out[:, f0:f1] = res.reshape(3, f1 - f0, N)
     return out
 
@@ -197,31 +188,27 @@ def _screen_tolerance(P: np.ndarray, C: np.ndarray) -> float:
     return 10 * 8 * float(np.finfo(np.float32).eps) * (1.0 + r)
 
 
-def _screen_planes(P: np.ndarray, Nrm: np.ndarray, offset: np.ndarray, flat: np.ndarray) -> np.ndarray:
-    """min_j s_j = min_j (p . n_j - o_j) per point: P (3, L), flat (k, L) into Nrm (3, .) and
-    offset (.,) = c . n; returns (L,) float32. In-place arithmetic: no (k, L) temporaries."""
-    s = np.take(offset, flat)
-    np.negative(s, out=s)
-    t = np.empty_like(s)
-    for c in range(3):
-        np.take(Nrm[c], flat, out=t)
-        t *= P[c]
-        s += t
-    return s.min(axis=0)
-
-
-def _push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m, iterations):
-    """Screened points: P (3, L), flat (k, L) candidate indices into C, Nrm (3, .), across (k, L):
-    the plane push of ``push_outside``'s formula, ``iterations`` passes, each point passing again
-    only while it moves (compiled: ``inference.guard.push_kernels``). Returns (3, L) float32."""
+def _push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m, iterations, *, extra=None, offset=None,
+                keep=None):
+    """The plane push of ``push_outside``'s formula on P (3, L): candidates flat (k, L) and extra
+    (k2, L, never across) into C, Nrm (3, .), across (k, L); ``iterations`` passes, each point
+    passing again only while it moves. With ``offset`` (c . n of every collider vertex) and
+    ``keep``, only the points the screen keeps (``_push_planes``) are pushed. Compiled:
+    ``inference.guard.push_kernels``. Returns ((3, L) float32, the kept points' positions)."""
     P = np.array(P, np.float32, order="C", copy=True)
+    L = P.shape[1]
+    flat = np.ascontiguousarray(flat, np.int64)
+    extra = np.zeros((0, L), np.int64) if extra is None else np.ascontiguousarray(extra, np.int64)
+    if offset is None:
+        offset, keep = np.zeros(np.shape(C)[1], np.float32), np.inf
+    live = np.empty(L, bool)
     push_kernels.push_points(
-        P, np.ascontiguousarray(C, np.float32), np.ascontiguousarray(Nrm, np.float32), np.ascontiguousarray(flat, np.int64),
-        np.zeros((0, 0), bool) if across is None else np.ascontiguousarray(across, bool), int(M), np.float32(margin_m),
-        np.float32(np.inf if max_push_m is None else max_push_m), np.zeros(0, bool) if boundary is None else np.ascontiguousarray(boundary, bool),
-        np.float32(reach_m**2), max(int(iterations), 1), np.float32(_TANGENT_M**2), np.float32(_FARTHER_M), np.float32(_OPPOSING_COS),
-        np.float32(_SQUEEZE_RADIUS_M**2))
-    return P
+        P, np.ascontiguousarray(C, np.float32), np.ascontiguousarray(Nrm, np.float32), np.ascontiguousarray(offset, np.float32), flat,
+        extra, np.zeros((0, 0), bool) if across is None else np.ascontiguousarray(across, bool), np.float32(keep), live, int(M),
+        np.float32(margin_m), np.float32(np.inf if max_push_m is None else max_push_m),
+        np.zeros(0, bool) if boundary is None else np.ascontiguousarray(boundary, bool), np.float32(reach_m**2), max(int(iterations), 1),
+        np.float32(_TANGENT_M**2), np.float32(_FARTHER_M), np.float32(_OPPOSING_COS), np.float32(_SQUEEZE_RADIUS_M**2))
+    return P, np.flatnonzero(live)
 
 
 def _ring_closest(ap, centre, C, other):
