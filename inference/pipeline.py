@@ -370,7 +370,7 @@ def drape(
         if options.guard_exact or all(m.canonical for m in methods):
             with timer("repair"):
                 # an outfit's inner points moved out of the body stay under the outer layers where they can
-                order = LayerOrder(anchors, [g.faces for g in garments]) if len(garments) > 1 and anchors is not None else None
+                order = LayerOrder(anchors, [g.faces for g in garments], options.layer_gap_m) if len(garments) > 1 and anchors is not None else None
                 posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin, order=order, faces=[g.faces for g in garments])[0]
 
     return DrapeResult(

@@ -56,15 +56,16 @@ def test_the_repair_uses_each_layers_margin_and_moves_within_the_bound(layered):
 
 def test_the_t_shirt_stays_under_the_jacket(layered):
     """The layer stage (inference.layers) leaves no T-shirt vertex whose body-anchor segment
-    crosses the jacket; the exact repair after it moves points out of the body, a few of them past
-    the jacket (measured here: 0.23 % of the T-shirt's vertex-frames; 0.00-0.02 % on the
-    validation walk, ``tools/outfit_layers.py``)."""
+    crosses the jacket; the exact repair after it moves points out of the body, and the jacket's
+    moves can cross T-shirt points, which then sink back under it where there is room (measured
+    here: 0.03 % of the T-shirt's vertex-frames beyond the jacket, 0.23 % without the sinking;
+    0.00-0.02 % on the validation walk, ``tools/outfit_layers.py``)."""
     body, full, unrepaired, _ = layered
     for result in (unrepaired, full):
         t, j = result.garments
         assert "layers" in result.timings_ms and len(result.anchors) == 2
         beyond = layer_beyond_pct(t.vertices, result.anchors[0], result.body_vertices, j.vertices, j.asset.faces)
-        assert beyond <= (0.0 if result is unrepaired else 0.5), beyond
+        assert beyond <= (0.0 if result is unrepaired else 0.1), beyond
 
 
 def test_an_outfit_whose_layers_never_meet(runtime):

@@ -289,3 +289,36 @@ def test_a_skin_mask_gives_the_same_skin_faces_array_each_request():
     np.testing.assert_array_equal(a, faces[:2])
     other = _masked_skin(faces, np.ones(7, bool).tobytes())[1]
     assert other is not a and len(other) == 4
+
+
+def test_inner_points_sink_under_the_faces_the_final_stage_moved_across_them():
+    # a unit sphere (the body); inner points 6 mm over the skin at two anchors; an outer patch that
+    # this stage moved from 2 cm over the skin down to 4 mm over it at the first anchor (across
+    # that inner point's anchor segment) and left alone elsewhere: that point goes back along its
+    # segment to the gap under the patch, the other one (no face moved near it) and the frame
+    # where nothing moved keep theirs
+    from inference.layers import anchor_crossings
+    from inference.repair import LayerOrder, _sink_under_moved
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    body = s.vertices.astype(np.float32)
+    top = int(np.argmax(body[:, 2]))
+    side = int(np.argmax(body[:, 0]))
+    anchors = np.array([top, side])
+    inner = (body[anchors] * 1.006)[None].repeat(2, 0)  # (2 frames, 2, 3)
+    w, (x, y) = 0.02, body[top, :2] + [0.003, 0.007]
+    square = np.array([[x - w, y - w], [x + w, y - w], [x + w, y + w], [x - w, y + w]])
+    before = np.concatenate([square, np.full((4, 1), 1.02)], 1).astype(np.float32)[None].repeat(2, 0)
+    after = before.copy()
+    after[0, :, 2] = 1.004  # frame 0: moved across the first point's segment; frame 1: not moved
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    order = LayerOrder([anchors, np.zeros(4, np.int64)], [np.zeros((0, 3), np.int64), faces], gap_m=0.001)
+    body_frames = body[None].repeat(2, 0)
+    P = inner.copy()
+    assert anchor_crossings(P, body_frames[:, anchors], after, faces)[0][0, 0] == 1  # beyond the moved patch
+    assert _sink_under_moved(P, body_frames, s.faces, order, 0, 1, before, after, floor_m=0.0) == 1
+    assert anchor_crossings(P, body_frames[:, anchors], after, faces)[0][0, 0] == 0  # under it now
+    height = np.linalg.norm(P[0, 0]) - 1.0
+    assert 0.002 < height < 0.0035, height  # the gap (1 mm) under the patch at 4 mm, along its segment
+    np.testing.assert_array_equal(P[0, 1], inner[0, 1])
+    np.testing.assert_array_equal(P[1], inner[1])
