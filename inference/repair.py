@@ -80,7 +80,7 @@ from inference import repair_kernels as kernels
 from inference.errors import InputShapeError
 from inference.guard.constants import DEFAULT_LAYER_GAP_M
 from inference.intersections import CELL_EDGES, first_crossings
-from inference.layers import LayerFrames, anchor_normals
+from inference.layers import LayerFrames
 from inference.mesh import faces_around, major_components, per_array
 from inference.winding import FRAME_BLOCK, WindingGrid, inflated, ray_down
 
@@ -348,7 +348,7 @@ def _sink_under_moved(P: np.ndarray, body: np.ndarray, body_faces: np.ndarray, o
     bool``, where given) and no farther than the crossed face moved, plus the gap. On the validation walk every inner vertex-frame left
     beyond an outer layer after this stage was one such crossing (crop top under shirt, heavy
     body: 0.08 % beyond; after the layer stage 0.00 %). Returns the points moved."""
-    moved_v = np.linalg.norm(outer_after - outer_before, axis=-1) > 0.0  # (T, No)
+    moved_v = (outer_after != outer_before).any(-1)  # (T, No)
     frames = np.flatnonzero(moved_v.any(1))
     if not len(frames):
         return 0
@@ -368,7 +368,12 @@ def _sink_under_moved(P: np.ndarray, body: np.ndarray, body_faces: np.ndarray, o
         hit = np.flatnonzero(first <= 1.0)
         if not len(hit):
             continue
-        n = anchor_normals(body[t:t + 1], body_faces, anchors[hit])[0]
+        ids, inverse = np.unique(anchors[hit], return_inverse=True)  # the anchors' normals (``layers.anchor_normals``)
+        slot = np.full(body.shape[1], -1, np.int64)
+        slot[ids] = np.arange(len(ids))
+        n = np.empty((1, len(ids), 3))
+        mesh_kernels.normals_at(body[t:t + 1], body_faces, faces_around(body_faces, ids, body.shape[1]), slot, n)
+        n = n[0, inverse]
         s = p[hit] - a[hit]
         Ls = np.linalg.norm(s, axis=-1)
         reach = first[hit] * Ls
