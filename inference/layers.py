@@ -40,8 +40,9 @@ p99 from 1.48 to 1.62; (a) gets most of that gain from the inner side. Moving al
 segments instead of the smoothed directions stretched 1.5 % of the T-shirt's edges past 1.5x
 (smoothed: 0.19 %). Lifting, after (c), the outer vertices still under an inner layer held at its floor
 (by at most 1 cm) made the 3-layer outfit worse on 02_02 (crop top beyond the shirt 0.29 -> 0.48 %,
-shirt-jacket pairs 272 -> 456). After the stage, the body's exact repair (which runs last) moves only points
-inside the body, along its normals; a few of those end beyond an outer layer again.
+shirt-jacket pairs 272 -> 456). After the stage, the body's exact repair (which runs last) moves the points
+inside the body out, outer layers first; inner points whose segment an outer layer's moved faces then
+cross go back under them by step (c) there, where they have room (``inference.repair``).
 
 Units: metres. Arrays: float32 in, float32 out, frames (T, N, 3).
 """
