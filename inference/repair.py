@@ -345,9 +345,10 @@ def _sink_under_moved(P: np.ndarray, body: np.ndarray, body_faces: np.ndarray, o
     stage's order test, ``inference.layers``); such a point goes back along its segment to the
     gap under the crossing, or, where the outer layer lies within floor + gap of the skin, half-way
     to it (the layer stage's step (c)), if that place is outside the body (``room(t, points) ->
-    bool``, where given) and no farther than the crossed face moved, plus the gap. On the validation walk every inner vertex-frame left
-    beyond an outer layer after this stage was one such crossing (crop top under shirt, heavy
-    body: 0.08 % beyond; after the layer stage 0.00 %). Returns the points moved."""
+    bool``, where given) and no farther than the crossed face moved, plus the gap. On the
+    validation walk every inner vertex-frame left beyond an outer layer after this stage was one
+    such crossing (crop top under shirt, heavy body: 0.08 % beyond; after the layer stage 0.00 %).
+    Returns the points moved."""
     moved_v = (outer_after != outer_before).any(-1)  # (T, No)
     frames = np.flatnonzero(moved_v.any(1))
     if not len(frames):
