@@ -349,11 +349,11 @@ def _sink_under_moved(P: np.ndarray, body: np.ndarray, body_faces: np.ndarray, o
     validation walk every inner vertex-frame left beyond an outer layer after this stage was one
     such crossing (crop top under shirt, heavy body: 0.08 % beyond; after the layer stage 0.00 %).
     Returns the points moved."""
+    faces = order.faces[j]
     moved_v = (outer_after != outer_before).any(-1)  # (T, No)
     frames = np.flatnonzero(moved_v.any(1))
-    if not len(frames):
+    if not len(frames) or not len(faces):
         return 0
-    faces = order.faces[j]
     anchors = order.anchors[i]
     h = None
     sunk = 0
