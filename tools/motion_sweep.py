@@ -2,11 +2,13 @@
 search for failures, not a split to choose anything on.
 
     python tools/motion_sweep.py --mocap-dir ../shared/data/mocap/cmu-asfamc --window 02_06:3:4 \
-        [--window 01_12:10:4 ...] [--body heavy ...] [--garments tshirt,jacket ...] [--lbs] > sweep.jsonl
+        [--window 01_12:10:4 ...] [--bvh ../shared/data/mocap/bvh/131_01.bvh:2:4 ...] \
+        [--body heavy ...] [--garments tshirt,jacket ...] [--lbs] > sweep.jsonl
 
 Each window (CMU clip id : start s : duration s) of ``<mocap-dir>/<subject>/<clip>.amc`` with the
-subject's ASF becomes an ASF/AMC drape request (``service.schemas.DrapeRequest``, 30 fps, the
-default options) run by ``Runtime.prepare`` + ``drape_batch``, for every body and garment set. One
+subject's ASF becomes an ASF/AMC drape request, and each ``--bvh`` window (file : start s :
+duration s) a BVH request of those frames (``service.schemas.DrapeRequest``, 30 fps, the default
+options), run by ``Runtime.prepare`` + ``drape_batch``, for every body and garment set. One
 JSON line per drape:
 - per garment: its method, whether every vertex is finite, the % of vertex-frames inside the
   body (``inference.metrics.inside_mask``; the final stage leaves none), the largest edge
@@ -60,6 +62,17 @@ def amc_window(text: str, start_s: float, duration_s: float) -> str:
     return "\n".join(out) + "\n"
 
 
+def bvh_window(text: str, start_s: float, duration_s: float) -> str:
+    """The BVH's frames from start_s for duration_s, with its hierarchy and a new frame count."""
+    lines = text.splitlines()
+    at = next(i for i, line in enumerate(lines) if line.strip().lower().startswith("frame time"))
+    dt = float(lines[at].split(":")[1])
+    frames = [line for line in lines[at + 1:] if line.strip()]
+    a, b = int(round(start_s / dt)), int(round((start_s + duration_s) / dt))
+    head = [line for line in lines[:at] if not line.strip().lower().startswith("frames")]
+    return "\n".join([*head, f"Frames: {len(frames[a:b])}", lines[at], *frames[a:b]]) + "\n"
+
+
 def phenotypes(name: str) -> dict[str, float]:
     values = BODIES[name] if name in BODIES else np.array([float(x) for x in name.split(",")])
     if len(values) != len(PHENOTYPES):
@@ -81,26 +94,37 @@ def garment_row(vertices: np.ndarray, body: np.ndarray, body_faces: np.ndarray, 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--mocap-dir", type=Path, required=True, help="CMU ASF/AMC folders: <dir>/<subject>/<subject>.asf, <clip>.amc")
-    ap.add_argument("--window", action="append", required=True, help="CLIP:START_S:DURATION_S (repeatable)")
+    ap.add_argument("--mocap-dir", type=Path, help="CMU ASF/AMC folders: <dir>/<subject>/<subject>.asf, <clip>.amc")
+    ap.add_argument("--window", action="append", default=[], help="CLIP:START_S:DURATION_S of --mocap-dir (repeatable)")
+    ap.add_argument("--bvh", action="append", default=[], help="FILE.bvh:START_S:DURATION_S (repeatable)")
     ap.add_argument("--body", action="append", help="a BODIES name or six phenotypes (repeatable; default heavy)")
     ap.add_argument("--garments", action="append", help="garment ids, innermost first, comma-separated (repeatable; default tshirt,jacket)")
     ap.add_argument("--lbs", action="store_true", help="also the plain skinning baseline of each drape")
     args = ap.parse_args(argv)
+    if args.window and args.mocap_dir is None:
+        ap.error("--window needs --mocap-dir")
+    if not args.window and not args.bvh:
+        ap.error("give at least one --window or --bvh")
     runtime = Runtime.load(Settings())
     variants = [("default", {})] + ([("lbs", {"fit": "retarget", "dynamics": "none", "collisions": "off"})] if args.lbs else [])
+    motions = []
     for window in args.window:
         clip, start, duration = window.split(":")
         subject = clip.split("_")[0]
         asf = (args.mocap_dir / subject / f"{subject}.asf").read_text()
         amc = amc_window((args.mocap_dir / subject / f"{clip}.amc").read_text(), float(start), float(duration))
+        motions.append((window, {"type": "asf_amc", "asf": asf, "amc": amc}))
+    for window in args.bvh:
+        path, start, duration = window.rsplit(":", 2)
+        motions.append((f"{Path(path).stem}:{start}:{duration}", {"type": "bvh", "bvh": bvh_window(Path(path).read_text(), float(start), float(duration))}))
+    for window, motion in motions:
         for body_name in args.body or ["heavy"]:
             for outfit in args.garments or ["tshirt,jacket"]:
                 ids = outfit.split(",")
                 posed_body = None
                 for variant, options in variants:
                     request = DrapeRequest.model_validate({"body": {"phenotypes": phenotypes(body_name)},
-                                                           "motion": {"type": "asf_amc", "asf": asf, "amc": amc},
+                                                           "motion": motion,
                                                            "garments": [{"id": g} for g in ids], "format": "npz",
                                                            "options": {"fps": 30, **options}})
                     row = {"window": window, "body": body_name, "outfit": outfit, "variant": variant}
