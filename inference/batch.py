@@ -119,4 +119,5 @@ def concatenate_results(results: list[DrapeResult], fps: float) -> DrapeResult:
         timings_ms=timings,
         wrinkle_state=results[-1].wrinkle_state,
         anchors=first.anchors,
+        repair_state=results[-1].repair_state,
     )

@@ -31,7 +31,9 @@ N - 1, then N - 3 under both, ...); for inner layer i, per frame, a sink depth s
   arm, sink in nearly one direction), but never below its floor height (its body margin):
       p <- p - min(s, (h - floor) / max(r . n, MIN_SINK_COS)) r
   (c) a moved vertex still beyond an outer layer goes back along its own anchor segment to the gap
-      under it, or, where the outer layer lies within floor + gap of the skin, half-way to it.
+      under it, or, where the outer layer lies within floor + gap of the skin, half-way to it (an
+      outer layer that crosses at the anchor itself, inside the body there, puts the point on its
+      skin vertex: the final stage moves it, ``inference.repair``).
 
 Pushing outer vertices out instead (over an inner layer found within 3 cm past them) left 2-5x
 fewer intersecting pairs away from the outer layer's self-intersections on 02_02, but stretched
@@ -75,6 +77,9 @@ MIN_SINK_COS = 0.2
 CONTACT_M = 0.06
 # One-ring averages of the sinking directions (``_smooth_rays``).
 RAY_SMOOTHING = 3
+# A vertex nearer its anchor than this lies on the skin (step (c) with an outer layer crossing at
+# the anchor): the final stage moves it out as if it were inside (``inference.repair``).
+ON_SKIN_M = 1e-5
 
 
 # KD-trees of rest bodies kept per process (``body_tree``): a shopper's body comes back with every

@@ -108,6 +108,8 @@ class DrapeResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     wrinkle_state: list[np.ndarray | None] = field(default_factory=list)  # per garment: the GRU state after the last frame (learned dynamics)
     anchors: list[np.ndarray] | None = None  # per garment: its vertices' body anchors (layered outfits; inference.layers)
+    # per garment: each vertex's move in the final stage in the last frame (N, 3), for the next chunk of the motion
+    repair_state: list[np.ndarray] | None = None
 
 
 class _Timer:
@@ -206,6 +208,7 @@ def drape(
     gamma: np.ndarray | None = None,
     wrinkle_state: Sequence[np.ndarray | None] | None = None,
     canonical: CanonicalModels | None = None,
+    repair_state: Sequence[np.ndarray] | None = None,
 ) -> DrapeResult:
     """Dress one shaped body (``body.shape`` of one phenotype vector) in ``garments``
     (innermost first) following ``motion``; ``neutral`` is the neutral body's shape (fit 'none');
@@ -218,7 +221,9 @@ def drape(
     motion (computed over the whole motion: its finite differences reach across the chunk's
     ends), and ``wrinkle_state`` each garment's GRU state after the previous chunk
     (``DrapeResult.wrinkle_state``; see ``drape_chunks``); ``canonical`` the diffused body and
-    canonical garments (fit 'canonical'; default ``inference.canonical.default_canonical()``)."""
+    canonical garments (fit 'canonical'; default ``inference.canonical.default_canonical()``);
+    ``repair_state`` each garment's moves in the final stage in the previous chunk's last frame
+    (``DrapeResult.repair_state``: the stage keeps a point on its side of a limb across frames)."""
     timer = _Timer()
     if shape.rest_vertices.shape[0] != 1:
         raise InputShapeError("shape", "one body (B = 1)", shape.rest_vertices.shape)
@@ -245,6 +250,7 @@ def drape(
     with timer("pose"):
         bone_poses, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
     anchors = None
+    repaired = None  # each garment's last frame's moves in the final stage
     body_vertices = None  # the posed body, needed by the guard (exporters pose it themselves)
     if options.guard:
         with timer("body_skin"):
@@ -371,7 +377,10 @@ def drape(
             with timer("repair"):
                 # an outfit's inner points moved out of the body stay under the outer layers where they can
                 order = LayerOrder(anchors, [g.faces for g in garments], options.layer_gap_m) if len(garments) > 1 and anchors is not None else None
-                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin, order=order, faces=[g.faces for g in garments])[0]
+                came = [p[0, -1] for p in posed]
+                posed = repair_layers(posed, body_vertices, body.faces, margins, skin=skin, order=order, faces=[g.faces for g in garments],
+                                      segments=segments, moves_before=repair_state)[0]
+                repaired = [p[0, -1] - c for p, c in zip(posed, came)]
 
     return DrapeResult(
         garments=[DrapedGarment(asset=g, vertices=p[0], method=m) for g, p, m in zip(garments, posed, methods)],
@@ -382,6 +391,7 @@ def drape(
         timings_ms=timer.ms,
         wrinkle_state=states,
         anchors=anchors,
+        repair_state=repaired,
     )
 
 
@@ -400,6 +410,7 @@ def without_root_travel(result: DrapeResult) -> DrapeResult:
         shape=result.shape, bone_poses=bones,
         body_vertices=None if result.body_vertices is None else result.body_vertices - shift[:, None],
         fps=result.fps, timings_ms=result.timings_ms, wrinkle_state=result.wrinkle_state, anchors=result.anchors,
+        repair_state=result.repair_state,
     )
 
 
@@ -419,8 +430,9 @@ def drape_chunks(
     (frames done so far, the chunk's result); concatenated, the chunks equal the drape of the
     whole motion (to float rounding). What reaches across frames is computed once over the whole
     motion: the arm lift (it smooths over neighbouring frames) and the motion descriptor (finite
-    differences); each garment's wrinkle GRU carries its state from one chunk to the next.
-    Every other stage is per frame."""
+    differences); each garment's wrinkle GRU carries its state from one chunk to the next, and
+    the final stage its last frame's moves (it keeps a point on its side of a limb from one frame
+    to the next). Every other stage is per frame."""
     if chunk_frames < 1:
         raise InputShapeError("chunk_frames", ">= 1", (chunk_frames,))
     canonical = canonical or default_canonical()
@@ -434,10 +446,11 @@ def drape_chunks(
     if any(m.dynamics == "learned" for m in methods):
         gamma = motion_descriptor(motion.rotations[None], motion.translation[None], motion.fps)
     state: list[np.ndarray | None] | None = None
+    moves: list[np.ndarray] | None = None
     for a in range(0, motion.num_frames, chunk_frames):
         b = min(a + chunk_frames, motion.num_frames)
         part = PoseSequence(motion.rotations[a:b], motion.translation[a:b], motion.fps)
         result = drape(body, shape, part, garments, options, neutral=neutral, models=models, defaults=defaults, canonical=canonical,
-                       gamma=None if gamma is None else gamma[:, a:b], wrinkle_state=state)
-        state = result.wrinkle_state
+                       gamma=None if gamma is None else gamma[:, a:b], wrinkle_state=state, repair_state=moves)
+        state, moves = result.wrinkle_state, result.repair_state
         yield b, result

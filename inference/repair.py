@@ -80,7 +80,7 @@ from inference import repair_kernels as kernels
 from inference.errors import InputShapeError
 from inference.guard.constants import DEFAULT_LAYER_GAP_M
 from inference.intersections import CELL_EDGES, first_crossings
-from inference.layers import LayerFrames
+from inference.layers import ON_SKIN_M, LayerFrames
 from inference.mesh import faces_around, major_components, per_array
 from inference.winding import FRAME_BLOCK, WindingGrid, inflated, ray_down
 
@@ -118,6 +118,12 @@ BAND_MOVE_M = 0.003
 REGION_M = 0.1
 # Targets tested per point at a time, nearest first.
 ROUND = 4
+# A point this stage moves farther than HOLD_FROM_M in two consecutive frames of a motion, the
+# second time against the first (to the other side of a limb), keeps the first side where a
+# free target there is at most HOLD_M farther than its nearest (``_hold_sides``). Chosen on the
+# validation walk against 0.5 and 2 cm (docs/benchmarks.md, session 41).
+HOLD_FROM_M = 0.005
+HOLD_M = 0.01
 
 
 def exact_repair(
@@ -156,6 +162,8 @@ def repair_layers(
     clearance_m: float | None = None,
     order: LayerOrder | None = None,
     faces: Sequence[np.ndarray] | None = None,
+    segments: Sequence[int] | None = None,
+    moves_before: Sequence[np.ndarray | None] | None = None,
 ) -> tuple[list[np.ndarray], int]:
     """``exact_repair`` of several garments on one body, sharing its winding grid per block of
     frames: layers each (B, T, N_i, 3), margins_m one per layer; returns the repaired layers and
@@ -175,7 +183,13 @@ def repair_layers(
 
     faces: each layer's faces (F_i, 3), outward: a point's inside test then casts its ray along
     -y where its normal points down y (``inference.winding.ray_down``; the same answers, fewer
-    faces to test); a target's ray follows its move."""
+    faces to test); a target's ray follows its move.
+
+    segments: frame counts of the motions concatenated along T (each batch item's; default one):
+    a point keeps its side of a limb from one frame to the next of a motion (``_hold_sides``),
+    never across two. moves_before: per layer, each point's move in this stage in the frame
+    before the first (N_i, 3) (a motion draped in chunks: the chunk before's last frame; None:
+    the first frame starts the motion)."""
     layers = [np.asarray(p) for p in layers]
     Bv = np.asarray(body)
     for p in layers:
@@ -206,6 +220,18 @@ def repair_layers(
         raise InputShapeError("order", f"anchors and faces of {len(layers)} layers", (len(order.anchors), len(order.faces)))
     if faces is not None and len(faces) != len(layers):
         raise InputShapeError("faces", f"faces of {len(layers)} layers", (len(faces),))
+    segments = [T] if segments is None else [int(n) for n in segments]
+    if min(segments, default=0) < 1 or sum(segments) != T:
+        raise InputShapeError("segments", f"positive frame counts summing to {T}", tuple(segments))
+    starts = np.zeros((B, T), bool)  # the frames that start a motion
+    starts[:, np.cumsum([0, *segments[:-1]])] = True
+    starts = starts.ravel()
+    if moves_before is not None:
+        if len(moves_before) != len(layers):
+            raise InputShapeError("moves_before", f"{len(layers)} layers", (len(moves_before),))
+        starts[0] = False  # the motion goes on from the frame before
+    # per layer: each point's move in the frame before the block (``_hold_sides``)
+    carry = [None if moves_before is None or m is None else np.asarray(m, np.float32).reshape(o.shape[1], 3) for m, o in zip(moves_before or out, out)]
     left = 0
     for f0 in range(0, B * T, FRAME_BLOCK):
         sl = slice(f0, f0 + FRAME_BLOCK)
@@ -214,7 +240,7 @@ def repair_layers(
         region = _region([o[sl] for o in out])
         grid = (WindingGrid(inflated(Bv[sl], body_faces, clearance_m), body_faces, second=Bv[sl], region=region)
                 if clearance_m > 0.0 else WindingGrid(Bv[sl], body_faces, region=region))
-        before = [o[sl].copy() for o in out] if order is not None else None  # the layers as the layer stage left them
+        before = [o[sl].copy() for o in out]  # the layers as they came to this stage
         for i in range(len(out) - 1, -1, -1):  # outside in: an inner layer's targets see the outer layers' final places
             Pb = out[i][sl]  # a view: the moves write into out[i]
             mesh = meshes[i]
@@ -223,7 +249,13 @@ def repair_layers(
                     _sink_under_moved(Pb, Bv[sl], body_faces, order, i, j, before[j], out[j][sl], margins_m[i],
                                       room=lambda t, q, mesh=meshes[i]: grid.count_at(q, np.full(len(q), t), mesh) == 0)
             down = None if faces is None else ray_down(Pb, faces[i])
-            frame, idx = np.nonzero(grid.count(Pb, mesh, down) > 0)
+            tested = grid.count(Pb, mesh, down) > 0
+            if order is not None:
+                # on its skin vertex (the layer stage's half-way under an outer layer that crosses
+                # at the anchor): on the surface, where a ray's inside test is a tie, so it moves too
+                off = Pb - Bv[sl][:, order.anchors[i]]
+                tested |= np.einsum("tnc,tnc->tn", off, off) < ON_SKIN_M ** 2
+            frame, idx = np.nonzero(tested)
             if not len(frame):
                 continue
             ok = np.zeros(len(frame), bool)
@@ -241,6 +273,8 @@ def repair_layers(
                 ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets, accept)
                 if ok.all():
                     break
+            _hold_sides(Pb, before[i], starts[sl], carry[i], Bv[sl], start, frame, idx, ok, grid, mesh, skin_ids, skin_faces, offsets[i],
+                        (k, far), trees, under)
             if cleared[i]:
                 # a point that had to go far (or nowhere) but was only within the clearance, not
                 # inside the body itself (between the arm and the torso), stays where it was
@@ -250,9 +284,92 @@ def repair_layers(
                     Pb[frame[band], idx[band]] = start[band]
                     ok[band] = True
             left += int((~ok).sum())
+        carry = [o[sl][-1] - b[-1] for o, b in zip(out, before)]
     if left:
         log.warning("exact repair: %d point-frames left inside the body (no outside target among %d candidates)", left, far)
     return [P.reshape(B, T, -1, 3) for P in out], left
+
+
+def _hold_sides(Pb, entering, starts, carry, Bb, start, frame, idx, ok, grid, mesh, skin_ids, skin_faces, margin_m, ks, trees, accept=None) -> int:
+    """Keep a point on its side of a limb from one frame to the next (Pb (T, N, 3), a block of one
+    layer, in place; ``entering`` its points as they came to this stage; the points tested:
+    frame (sorted), idx, from ``start``, ``ok`` where moved out).
+
+    Each point takes its nearest outside target alone, frame by frame. Deep in a limb (a T-shirt's
+    hem in a thigh when the body crouches, cloth between the arm and the flank) two ways out are
+    about as near, and the choice can flip from one side to the other, and back, from one frame
+    to the next: the cloth jumps by twice the depth. So, frame by frame in order, a point whose
+    move m_t = p'_t - p_t (p' where this stage put it, p where it came) and the frame before's
+    m_{t-1} are both longer than HOLD_FROM_M and m_t . m_{t-1} < 0 takes instead, of its free
+    targets (outside the body, and where ``accept`` is given, under the outer layers) no more than
+    HOLD_M farther from it than the one it had, the one nearest to p_t + m_{t-1}: it stays on its
+    side unless that costs more than HOLD_M. A flip that still happens is then at most HOLD_M
+    longer than it would have been.
+
+    starts: (T,) bool, the frames that start a motion (no frame before them); carry: (N, 3) the
+    moves of the frame before the block (None: none); ks: the candidate counts to try, nearest
+    skin vertices first. Returns the points held."""
+    held_total = 0
+    T = Pb.shape[0]
+    moves = Pb - entering
+    before = np.concatenate([np.zeros_like(moves[:1]) if carry is None else carry[None], moves[:-1]])  # the frame before's moves
+    bounds = np.searchsorted(frame, np.arange(T + 1))
+    live = ~starts & ((np.arange(T) > 0) | (carry is not None))  # frames with a frame before them in the motion
+    flips = _flips(moves[frame, idx], before[frame, idx]) & ok & live[frame]
+    changed = False  # a point held in the frame before: its move there is another one now
+    for t in range(T):
+        if not (flips[bounds[t]:bounds[t + 1]].any() or (changed and live[t])):
+            changed = False
+            continue
+        r = np.arange(bounds[t], bounds[t + 1])
+        v = idx[r]
+        was = Pb[t - 1, v] - entering[t - 1, v] if t > 0 else carry[v]
+        flip = ok[r] & _flips(Pb[t, v] - entering[t, v], was)
+        changed = False
+        if not flip.any():
+            continue
+        r, v, was = r[flip], v[flip], was[flip]
+        f, p, had = frame[r], start[r], Pb[t, v]
+        want = entering[t, v] + was
+        todo = np.arange(len(r))
+        for kk in ks:  # deep in a limb every near target is inside: look farther
+            Pb[f[todo], v[todo]] = p[todo]  # the targets are p's
+            chosen, found = _held_target(Pb, Bb, f[todo], v[todo], p[todo], had[todo], want[todo], grid, mesh, skin_ids, skin_faces,
+                                         margin_m, kk, trees, accept)
+            Pb[f[todo], v[todo]] = np.where(found[:, None], chosen, had[todo])
+            held_total += int(found.sum())
+            changed |= bool(found.any())
+            todo = todo[~found]
+            if not len(todo):
+                break
+    return held_total
+
+
+def _flips(cur: np.ndarray, was: np.ndarray) -> np.ndarray:
+    """(n,) bool: moves cur and the frame before's was (n, 3) both longer than HOLD_FROM_M and
+    against each other (``_hold_sides``)."""
+    far2 = HOLD_FROM_M ** 2
+    return (np.einsum("nc,nc->n", cur, cur) > far2) & (np.einsum("nc,nc->n", was, was) > far2) & (np.einsum("nc,nc->n", cur, was) < 0.0)
+
+
+def _held_target(Pb, Bb, f, v, p, had, want, grid, mesh, skin_ids, skin_faces, margin_m, k, trees, accept):
+    """``_hold_sides`` for points (f, v) at p (n, 3) that this stage put at ``had`` (n, 3), from the
+    targets on their k nearest skin vertices: the free one within HOLD_M of |had - p| from p that
+    is nearest to ``want`` (n, 3), and (n,) bool where there is one."""
+    targets = _posed_targets(Pb, Bb, f, v, skin_ids, skin_faces, margin_m, k, trees)  # (n, 2k, 3)
+    allowed = np.linalg.norm(targets - p[:, None], axis=-1) <= (np.linalg.norm(had - p, axis=1) + HOLD_M)[:, None]
+    n, m = allowed.shape
+    rows, cols = np.nonzero(allowed)
+    tried = targets[rows, cols]
+    outside = grid.count_at(tried, f[rows], mesh, tried[:, 1] < p[rows, 1]) == 0
+    if accept is not None and outside.any():
+        at = np.flatnonzero(outside)
+        outside[at] = accept(f[rows[at]], v[rows[at]], tried[at])
+    free = np.zeros((n, m), bool)
+    free[rows[outside], cols[outside]] = True
+    miss = np.where(free, np.linalg.norm(targets - want[:, None], axis=-1), np.inf)
+    best = np.argmin(miss, axis=1)
+    return targets[np.arange(n), best], np.isfinite(miss[np.arange(n), best])
 
 
 def _region(layers: list[np.ndarray]) -> np.ndarray:

@@ -322,3 +322,63 @@ def test_inner_points_sink_under_the_faces_the_final_stage_moved_across_them():
     assert 0.002 < height < 0.0035, height  # the gap (1 mm) under the patch at 4 mm, along its segment
     np.testing.assert_array_equal(P[0, 1], inner[0, 1])
     np.testing.assert_array_equal(P[1], inner[1])
+
+
+def _slab_and_flips():
+    """A slab 6 cm thick (an ellipsoid 1 m x 6 cm x 1 m, still in 4 frames) and one point inside
+    it, 2 mm on one side of its middle and then the other: its nearest way out, 3 cm off, is
+    up (+y) in frames 0 and 3 and down in frames 1 and 2."""
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    body = (s.vertices * [0.5, 0.03, 0.5]).astype(np.float32)
+    y = np.array([0.002, -0.002, -0.002, 0.002], np.float32)
+    points = np.zeros((1, 4, 1, 3), np.float32)
+    points[0, :, 0] = [0.0123, 0.0, 0.0071]  # off the vertical through the slab's middle vertex
+    points[0, :, 0, 1] = y
+    return np.repeat(body[None, None], 4, axis=1), np.asarray(s.faces), points
+
+
+def test_a_point_keeps_its_side_of_a_limb_from_frame_to_frame_within_a_motion():
+    """The final stage's hold (``repair._hold_sides``): a point whose nearest way out flips to the
+    other side of a thin part keeps the side it had (3.2 against 2.8 cm: within HOLD_M), so it does
+    not jump 6 cm from frame to frame; a new motion (``segments``) chooses afresh; a chunk that
+    goes on from another (``moves_before``) holds as the whole motion does."""
+    from inference import repair
+    from inference.repair import repair_layers
+
+    body, faces, points = _slab_and_flips()
+    side = lambda out: np.sign(out[0][0, :, 0, 1])  # noqa: E731 - the side each frame went out on
+
+    hold = repair.HOLD_M
+    try:
+        repair.HOLD_M = 0.0  # no hold: each frame alone, its nearest way out
+        np.testing.assert_array_equal(side(repair_layers([points], body, faces, [0.002])[0]), [1, -1, -1, 1])
+    finally:
+        repair.HOLD_M = hold
+    whole, left = repair_layers([points], body, faces, [0.002])
+    assert left == 0 and not winding_numbers(whole[0][0], body[0], faces).any()
+    np.testing.assert_array_equal(side(whole), [1, 1, 1, 1])
+    # two motions of two frames each: the second chooses its first frame afresh, then holds it
+    np.testing.assert_array_equal(side(repair_layers([points], body, faces, [0.002], segments=[2, 2])[0]), [1, 1, -1, -1])
+    # frames 2-3 as a chunk that goes on from frame 1's move: as in the whole motion
+    moved = whole[0][0, 1, 0] - points[0, 1, 0]
+    chunk = repair_layers([points[:, 2:]], body[:, 2:], faces, [0.002], moves_before=[moved[None]])[0]
+    np.testing.assert_array_equal(chunk[0], whole[0][:, 2:])
+    with pytest.raises(InputShapeError):
+        repair_layers([points], body, faces, [0.002], segments=[3, 2])
+
+
+def test_an_inner_point_left_on_its_skin_vertex_moves_off_it():
+    """The layer stage can put an inner point on its anchor (half-way under an outer layer that
+    crosses at the skin); on the surface a ray's inside test is a tie, so the final stage moves it
+    out as if it were inside."""
+    from inference.repair import LayerOrder, repair_layers
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    body = s.vertices.astype(np.float32)
+    top = int(np.argmax(body[:, 2]))
+    inner = body[[top]][None, None].copy()  # (1, 1, 1, 3): exactly on the skin vertex
+    outer = (body * 1.02)[None, None]  # a sphere 2 cm over the skin
+    order = LayerOrder([np.array([top]), np.arange(len(body))], [np.zeros((0, 3), np.int64), np.asarray(s.faces)])
+    out, left = repair_layers([inner, outer], body[None, None], s.faces, [0.002, 0.005], order=order)
+    height = np.linalg.norm(out[0][0, 0, 0]) - 1.0
+    assert left == 0 and 0.001 < height < 0.003, height  # out to the inner layer's margin, under the outer one
