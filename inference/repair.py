@@ -273,16 +273,18 @@ def repair_layers(
                 ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets, accept)
                 if ok.all():
                     break
-            _hold_sides(Pb, before[i], starts[sl], carry[i], Bv[sl], start, frame, idx, ok, grid, mesh, skin_ids, skin_faces, offsets[i],
-                        (k, far), trees, under)
+            inside = ok
             if cleared[i]:
                 # a point that had to go far (or nowhere) but was only within the clearance, not
                 # inside the body itself (between the arm and the torso), stays where it was
-                went_far = np.flatnonzero(~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M))
-                if len(went_far):
-                    band = went_far[grid.count_at(start[went_far], frame[went_far], "second") == 0]
-                    Pb[frame[band], idx[band]] = start[band]
-                    ok[band] = True
+                inside = grid.count_at(start, frame, "second") > 0
+                band = np.flatnonzero(~inside & (~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M)))
+                Pb[frame[band], idx[band]] = start[band]
+                ok[band] = True
+                inside = inside & ok
+            # the points inside the body keep their side of a limb from one frame to the next
+            _hold_sides(Pb, before[i], starts[sl], carry[i], Bv[sl], start, frame, idx, inside, grid, mesh, skin_ids, skin_faces,
+                        offsets[i], (k, far), trees, under)
             left += int((~ok).sum())
         carry = [o[sl][-1] - b[-1] for o, b in zip(out, before)]
     if left:
@@ -293,7 +295,7 @@ def repair_layers(
 def _hold_sides(Pb, entering, starts, carry, Bb, start, frame, idx, ok, grid, mesh, skin_ids, skin_faces, margin_m, ks, trees, accept=None) -> int:
     """Keep a point on its side of a limb from one frame to the next (Pb (T, N, 3), a block of one
     layer, in place; ``entering`` its points as they came to this stage; the points tested:
-    frame (sorted), idx, from ``start``, ``ok`` where moved out).
+    frame (sorted), idx, from ``start``; ``ok`` the ones to hold: moved out of the body itself).
 
     Each point takes its nearest outside target alone, frame by frame. Deep in a limb (a T-shirt's
     hem in a thigh when the body crouches, cloth between the arm and the flank) two ways out are

@@ -96,3 +96,37 @@ def test_batched_and_chunked_results_keep_the_anchors(layered):
     for r in (*parts, joined):
         assert r.anchors is not None and all(np.array_equal(a, b) for a, b in zip(r.anchors, full.anchors))
     np.testing.assert_array_equal(joined.garments[0].vertices, full.garments[0].vertices)
+
+
+def test_chunks_carry_the_final_stages_moves_and_batches_keep_their_motions_apart(runtime, monkeypatch):
+    """The final stage keeps a point on its side of a limb from one frame to the next of a motion
+    (``repair._hold_sides``, tested on a slab in tests/test_repair.py): a long request's chunks
+    hand it their last frame's moves (``DrapeResult.repair_state``), and motions batched into one
+    call (``segments``) reach it as separate motions."""
+    import inference.pipeline as pipeline
+    from inference.pipeline import drape_chunks
+
+    calls = []
+    real = pipeline.repair_layers
+
+    def recording(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls.append((kwargs.get("segments"), kwargs.get("moves_before"), [p[0, -1] - a[0, -1] for p, a in zip(out[0], args[0])]))
+        return out
+
+    monkeypatch.setattr(pipeline, "repair_layers", recording)
+    body, catalog = runtime.body, runtime.catalog
+    shape = body.shape(HEAVY)
+    rotations, translation = adapt_clip(runtime.clips.load("dance"), body, shape)
+    motion = PoseSequence(np.ascontiguousarray(rotations[0, 60:80]), np.ascontiguousarray(translation[0, 60:80]), 30.0)
+    assets = [catalog.get("tshirt")]
+    options = DrapeOptions(fit="canonical", dynamics="none", lift_arms=False)
+    parts = [r for _, r in drape_chunks(body, shape, motion, assets, options, chunk_frames=8)]
+    assert [len(c[0]) == 1 and c[0][0] for c in calls] == [8, 8, 4]
+    assert calls[0][1] is None  # the first chunk starts the motion
+    for (_, before, _), (_, _, last), part in zip(calls[1:], calls[:-1], parts[:-1]):
+        np.testing.assert_array_equal(before[0], last[0])  # the chunk before's last frame's moves
+        np.testing.assert_array_equal(part.repair_state[0], last[0])
+    calls.clear()
+    drape(body, shape, motion, assets, options, segments=[12, 8])
+    assert calls[0][0] == [12, 8] and calls[0][1] is None
