@@ -124,6 +124,8 @@ ROUND = 4
 # validation walk against 0.5 and 2 cm (docs/benchmarks.md, session 41).
 HOLD_FROM_M = 0.005
 HOLD_M = 0.01
+# ... and only where the flip would move it this much between the frames (smaller ones are no pop).
+HOLD_JUMP_M = 0.02
 
 
 def exact_repair(
@@ -273,18 +275,21 @@ def repair_layers(
                 ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets, accept)
                 if ok.all():
                     break
-            inside = ok
+            held = ok.copy()
+            in_body = None
             if cleared[i]:
                 # a point that had to go far (or nowhere) but was only within the clearance, not
                 # inside the body itself (between the arm and the torso), stays where it was
-                inside = grid.count_at(start, frame, "second") > 0
-                band = np.flatnonzero(~inside & (~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M)))
-                Pb[frame[band], idx[band]] = start[band]
-                ok[band] = True
-                inside = inside & ok
-            # the points inside the body keep their side of a limb from one frame to the next
-            _hold_sides(Pb, before[i], starts[sl], carry[i], Bv[sl], start, frame, idx, inside, grid, mesh, skin_ids, skin_faces,
-                        offsets[i], (k, far), trees, under)
+                went_far = np.flatnonzero(~ok | (np.linalg.norm(Pb[frame, idx] - start, axis=1) > offsets[i] + BAND_MOVE_M))
+                if len(went_far):
+                    band = went_far[grid.count_at(start[went_far], frame[went_far], "second") == 0]
+                    Pb[frame[band], idx[band]] = start[band]
+                    ok[band] = True
+                    held[band] = False
+                in_body = lambda rows: grid.count_at(start[rows], frame[rows], "second") > 0  # noqa: E731
+            # the points inside the body itself keep their side of a limb from one frame to the next
+            _hold_sides(Pb, before[i], starts[sl], carry[i], Bv[sl], start, frame, idx, held, in_body, grid, mesh, skin_ids, skin_faces,
+                        offsets[i], k, trees, under)
             left += int((~ok).sum())
         carry = [o[sl][-1] - b[-1] for o, b in zip(out, before)]
     if left:
@@ -292,86 +297,85 @@ def repair_layers(
     return [P.reshape(B, T, -1, 3) for P in out], left
 
 
-def _hold_sides(Pb, entering, starts, carry, Bb, start, frame, idx, ok, grid, mesh, skin_ids, skin_faces, margin_m, ks, trees, accept=None) -> int:
+def _hold_sides(Pb, entering, starts, carry, Bb, start, frame, idx, ok, in_body, grid, mesh, skin_ids, skin_faces, margin_m, k, trees,
+                accept=None) -> int:
     """Keep a point on its side of a limb from one frame to the next (Pb (T, N, 3), a block of one
     layer, in place; ``entering`` its points as they came to this stage; the points tested:
-    frame (sorted), idx, from ``start``; ``ok`` the ones to hold: moved out of the body itself).
+    frame (sorted), idx, from ``start``; ``ok`` the ones moved out; ``in_body(rows)`` (None: all
+    of them are) which of those rows were inside the body itself, not only within a clearance).
 
     Each point takes its nearest outside target alone, frame by frame. Deep in a limb (a T-shirt's
     hem in a thigh when the body crouches, cloth between the arm and the flank) two ways out are
     about as near, and the choice can flip from one side to the other, and back, from one frame
     to the next: the cloth jumps by twice the depth. So, frame by frame in order, a point whose
     move m_t = p'_t - p_t (p' where this stage put it, p where it came) and the frame before's
-    m_{t-1} are both longer than HOLD_FROM_M and m_t . m_{t-1} < 0 takes instead, of its free
-    targets (outside the body, and where ``accept`` is given, under the outer layers) no more than
-    HOLD_M farther from it than the one it had, the one nearest to p_t + m_{t-1}: it stays on its
-    side unless that costs more than HOLD_M. A flip that still happens is then at most HOLD_M
-    longer than it would have been.
+    m_{t-1} are both longer than HOLD_FROM_M, with m_t . m_{t-1} < 0 and |m_t - m_{t-1}| >
+    HOLD_JUMP_M (a jump worth holding), takes instead, of its free targets (outside the body, and
+    where ``accept`` is given, under the outer layers) no more than HOLD_M farther from it than the
+    one it had, the one nearest to p_t + m_{t-1}: it stays on its side unless that costs more than
+    HOLD_M. A flip that still happens is then at most HOLD_M longer than it would have been.
 
     starts: (T,) bool, the frames that start a motion (no frame before them); carry: (N, 3) the
-    moves of the frame before the block (None: none); ks: the candidate counts to try, nearest
-    skin vertices first. Returns the points held."""
-    held_total = 0
-    T = Pb.shape[0]
+    moves of the frame before the block (None: none); k: the targets' nearest skin vertices (one
+    search for every point that may need a hold in the block; the choice then goes frame by
+    frame). Returns the points held."""
+    T, N = Pb.shape[:2]
     moves = Pb - entering
     before = np.concatenate([np.zeros_like(moves[:1]) if carry is None else carry[None], moves[:-1]])  # the frame before's moves
-    bounds = np.searchsorted(frame, np.arange(T + 1))
     live = ~starts & ((np.arange(T) > 0) | (carry is not None))  # frames with a frame before them in the motion
-    flips = _flips(moves[frame, idx], before[frame, idx]) & ok & live[frame]
-    changed = False  # a point held in the frame before: its move there is another one now
-    for t in range(T):
-        if not (flips[bounds[t]:bounds[t + 1]].any() or (changed and live[t])):
-            changed = False
-            continue
+    reach = _flips(moves[frame, idx], before[frame, idx]) & ok & live[frame]
+    if not reach.any():
+        return 0
+    # a point held in a frame changes its move there, so its next frame may need a hold too (held
+    # on one side, its nearest way out is on the other again): the rows reachable so, along runs of
+    # consecutive frames the point is tested in
+    row = np.full((T, N), -1, np.int64)
+    row[frame, idx] = np.arange(len(frame))
+    for t in range(1, T):
+        r = row[t, idx[frame == t]]
+        prev = row[t - 1, idx[r]]
+        reach[r] |= (prev >= 0) & reach[np.maximum(prev, 0)] & ok[r] & live[t]
+    rows = np.flatnonzero(reach)
+    if in_body is not None:
+        rows = rows[in_body(rows)]
+    if not len(rows):
+        return 0
+    # every reachable point's targets at once (they depend on its place, not on the hold)
+    f, v, p = frame[rows], idx[rows], start[rows]
+    had = Pb[f, v].copy()
+    Pb[f, v] = p  # the targets are p's
+    targets = _posed_targets(Pb, Bb, f, v, skin_ids, skin_faces, margin_m, k, trees)  # (n, 2k, 3)
+    Pb[f, v] = had
+    free = np.linalg.norm(targets - p[:, None], axis=-1) <= (np.linalg.norm(had - p, axis=1) + HOLD_M)[:, None]
+    at = np.nonzero(free)
+    tried = targets[at]
+    out = grid.count_at(tried, f[at[0]], mesh, tried[:, 1] < p[at[0], 1]) == 0
+    if accept is not None and out.any():
+        sel = np.flatnonzero(out)
+        out[sel] = accept(f[at[0][sel]], v[at[0][sel]], tried[sel])
+    free[at[0][~out], at[1][~out]] = False
+    held_total = 0
+    bounds = np.searchsorted(f, np.arange(T + 1))
+    for t in np.unique(f):  # in order: a hold changes the next frame's move before
         r = np.arange(bounds[t], bounds[t + 1])
-        v = idx[r]
-        was = Pb[t - 1, v] - entering[t - 1, v] if t > 0 else carry[v]
-        flip = ok[r] & _flips(Pb[t, v] - entering[t, v], was)
-        changed = False
-        if not flip.any():
-            continue
-        r, v, was = r[flip], v[flip], was[flip]
-        f, p, had = frame[r], start[r], Pb[t, v]
-        want = entering[t, v] + was
-        todo = np.arange(len(r))
-        for kk in ks:  # deep in a limb every near target is inside: look farther
-            Pb[f[todo], v[todo]] = p[todo]  # the targets are p's
-            chosen, found = _held_target(Pb, Bb, f[todo], v[todo], p[todo], had[todo], want[todo], grid, mesh, skin_ids, skin_faces,
-                                         margin_m, kk, trees, accept)
-            Pb[f[todo], v[todo]] = np.where(found[:, None], chosen, had[todo])
-            held_total += int(found.sum())
-            changed |= bool(found.any())
-            todo = todo[~found]
-            if not len(todo):
-                break
+        vt = v[r]
+        was = Pb[t - 1, vt] - entering[t - 1, vt] if t > 0 else carry[vt]
+        flip = _flips(had[r] - entering[t, vt], was)
+        r, vt, was = r[flip], vt[flip], was[flip]
+        miss = np.where(free[r], np.linalg.norm(targets[r] - (entering[t, vt] + was)[:, None], axis=-1), np.inf)
+        best = np.argmin(miss, axis=1)
+        found = np.isfinite(miss[np.arange(len(r)), best])
+        Pb[t, vt[found]] = targets[r[found], best[found]]
+        held_total += int(found.sum())
     return held_total
 
 
 def _flips(cur: np.ndarray, was: np.ndarray) -> np.ndarray:
     """(n,) bool: moves cur and the frame before's was (n, 3) both longer than HOLD_FROM_M and
-    against each other (``_hold_sides``)."""
-    far2 = HOLD_FROM_M ** 2
-    return (np.einsum("nc,nc->n", cur, cur) > far2) & (np.einsum("nc,nc->n", was, was) > far2) & (np.einsum("nc,nc->n", cur, was) < 0.0)
-
-
-def _held_target(Pb, Bb, f, v, p, had, want, grid, mesh, skin_ids, skin_faces, margin_m, k, trees, accept):
-    """``_hold_sides`` for points (f, v) at p (n, 3) that this stage put at ``had`` (n, 3), from the
-    targets on their k nearest skin vertices: the free one within HOLD_M of |had - p| from p that
-    is nearest to ``want`` (n, 3), and (n,) bool where there is one."""
-    targets = _posed_targets(Pb, Bb, f, v, skin_ids, skin_faces, margin_m, k, trees)  # (n, 2k, 3)
-    allowed = np.linalg.norm(targets - p[:, None], axis=-1) <= (np.linalg.norm(had - p, axis=1) + HOLD_M)[:, None]
-    n, m = allowed.shape
-    rows, cols = np.nonzero(allowed)
-    tried = targets[rows, cols]
-    outside = grid.count_at(tried, f[rows], mesh, tried[:, 1] < p[rows, 1]) == 0
-    if accept is not None and outside.any():
-        at = np.flatnonzero(outside)
-        outside[at] = accept(f[rows[at]], v[rows[at]], tried[at])
-    free = np.zeros((n, m), bool)
-    free[rows[outside], cols[outside]] = True
-    miss = np.where(free, np.linalg.norm(targets - want[:, None], axis=-1), np.inf)
-    best = np.argmin(miss, axis=1)
-    return targets[np.arange(n), best], np.isfinite(miss[np.arange(n), best])
+    against each other by more than HOLD_JUMP_M (``_hold_sides``)."""
+    far2, jump = HOLD_FROM_M ** 2, cur - was
+    return ((np.einsum("nc,nc->n", cur, cur) > far2) & (np.einsum("nc,nc->n", was, was) > far2) & (np.einsum("nc,nc->n", cur, was) < 0.0)
+            & (np.einsum("nc,nc->n", jump, jump) > HOLD_JUMP_M ** 2))
 
 
 def _region(layers: list[np.ndarray]) -> np.ndarray:
