@@ -14,9 +14,9 @@ faces of its cell, so one grid answers many point sets (a garment's vertices, th
 garment's normal faces, so the ray leaves the body at once), and a grid can bin only the faces
 over the part of the plane its points lie in (``region``). Point-in-projected-triangle uses edge functions evaluated from the edge's
 two vertices in canonical (lower index first) order, so the two faces sharing an edge compute the
-bitwise same value and a ray through the edge is counted once (ties go to the left of the
-canonical edge). Only rays through a projected vertex, or points on the surface, are ambiguous
-(measure zero). The crossing test runs in float64 on the candidate (point, face) pairs only,
+bitwise same value and a ray through the edge is counted once; a point on an edge's line takes
+the side of the point moved by an infinitesimal (eps, eps^2) (``inference.winding_kernels``), so
+a ray through a projected vertex counts as well. Only points on the surface are ambiguous. The crossing test runs in float64 on the candidate (point, face) pairs only,
 compiled (numba: ``inference.winding_kernels``); a grid's bins live in per-thread buffers that the
 next grid reuses.
 

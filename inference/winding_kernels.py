@@ -3,8 +3,13 @@ crossings at points (numba, no Python objects, one thread).
 
 The maths is the module doc of ``inference.winding``: a ray p + t e_y (t > 0) from each point, the
 faces projected onto (u, v) = (x, z), a face f crossed where p's projection is inside f's (edge
-functions of the canonical edges, lower vertex id first, ties to the left) and f's depth there is
-above p_y; each crossing counts -sign(A2_f) (A2_f: twice f's signed projected area; n_y = -A2).
+functions of the canonical edges, lower vertex id first) and f's depth there is above p_y; each
+crossing counts -sign(A2_f) (A2_f: twice f's signed projected area; n_y = -A2). A point on an
+edge's line (E = 0) takes the side the point moved by (eps, eps^2) would have, eps -> 0: that of
+-dv, else of du (E grows by du eps^2 - dv eps). The two faces of an edge see the same canonical
+edge, so a ray through it counts once; the faces around a vertex see the one moved point, so a
+ray through a vertex counts as a ray beside it does (a point 2 mm inside a slab, straight under
+its middle vertex, counted 0 with ties always to the left).
 
 Bitwise the same arithmetic as that doc's formulas in float64, without fast-math (no FMA
 contraction): the two faces of an edge evaluate the same edge function from the same two
@@ -142,7 +147,10 @@ def _crossing(pu, pv, pyy, up, f, base, u, v, y, faces, edge_lo, edge_hi, opposi
         e0u, e0v = u[lo_k], v[lo_k]
         du, dv = u[hi_k] - e0u, v[hi_k] - e0v
         E = du * (pv - e0v) - dv * (pu - e0u)
-        if ((E >= 0.0) ^ flip[f, k]) != ccw:
+        # the side of the point moved by (eps, eps^2) in (u, v), eps -> 0: E's own sign, else (on
+        # the edge's line) that of -dv, else of du (module doc)
+        left = E > 0.0 or (E == 0.0 and (dv < 0.0 or (dv == 0.0 and du > 0.0)))
+        if (left ^ flip[f, k]) != ccw:
             return 0
         Et = -E if flip[f, k] else E
         depth = depth + Et * (y[base + opposite[f, k]] - pyy)

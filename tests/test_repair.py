@@ -382,3 +382,20 @@ def test_an_inner_point_left_on_its_skin_vertex_moves_off_it():
     out, left = repair_layers([inner, outer], body[None, None], s.faces, [0.002, 0.005], order=order)
     height = np.linalg.norm(out[0][0, 0, 0]) - 1.0
     assert left == 0 and 0.001 < height < 0.003, height  # out to the inner layer's margin, under the outer one
+
+
+def test_rays_through_a_projected_vertex_count_as_rays_beside_it():
+    """A point straight above or below a mesh vertex casts its ray through that vertex: the faces
+    around it must count it once in all (the point on an edge's line takes the side of an
+    infinitesimally moved point). Same numbers as libigl's exact winding numbers, off the surface."""
+    import igl
+
+    v, f = _two_spheres()
+    rng = np.random.default_rng(2)
+    q = v[rng.integers(0, len(v), 3000)].copy()
+    q[:, 1] = rng.uniform(-1.5, 1.5, len(q))  # the x and z of a vertex: the vertical ray meets it
+    exact = igl.winding_number(v.astype(np.float64), f.astype(np.int64), q.astype(np.float64))
+    off = np.abs(exact - np.round(exact)) < 1e-3  # not on the surface (ambiguous there)
+    counted = WindingGrid(v[None], f).count(q[None])[0]
+    np.testing.assert_array_equal(counted[off], np.round(exact[off]).astype(np.int32))
+    assert off.sum() > 2900 and (counted[off] > 0).sum() > 500  # inside both parts, one, or none
