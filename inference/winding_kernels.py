@@ -149,7 +149,7 @@ def _crossing(pu, pv, pyy, up, f, base, u, v, y, faces, edge_lo, edge_hi, opposi
         E = du * (pv - e0v) - dv * (pu - e0u)
         # the side of the point moved by (eps, eps^2) in (u, v), eps -> 0: E's own sign, else (on
         # the edge's line) that of -dv, else of du (module doc)
-        left = E > 0.0 or (E == 0.0 and (dv < 0.0 or (dv == 0.0 and du > 0.0)))
+        left = (E > 0.0) | ((E == 0.0) & ((dv < 0.0) | ((dv == 0.0) & (du > 0.0))))  # no branch: | and &, not or and and
         if (left ^ flip[f, k]) != ccw:
             return 0
         Et = -E if flip[f, k] else E
