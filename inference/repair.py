@@ -48,6 +48,10 @@ now crosses a face that this stage moved go back along the segment under it, as 
 does (``_sink_under_moved``), where that place is outside the body and no farther than the face
 moved: the crop top beyond the shirt 0.07 -> 0.02 % (heaviest), 0.16 -> 0.02 % (val-near).
 
+Over time: each frame's nearest way out is chosen alone, so deep in a limb a point can flip from
+one side to the other between frames; a point keeps the side it had where that costs at most
+HOLD_M more (``_hold_sides``; within a motion, across a long request's chunks).
+
 (a point with no outside target among them tries FAR_FACTOR times more candidates; one with
 none there either stays where it is, is counted and logged). The targets lie on the outer surface
 of the union of the overlapping parts, so a point squeezed between an arm and the torso goes
@@ -233,7 +237,8 @@ def repair_layers(
             raise InputShapeError("moves_before", f"{len(layers)} layers", (len(moves_before),))
         starts[0] = False  # the motion goes on from the frame before
     # per layer: each point's move in the frame before the block (``_hold_sides``)
-    carry = [None if moves_before is None or m is None else np.asarray(m, np.float32).reshape(o.shape[1], 3) for m, o in zip(moves_before or out, out)]
+    carry = ([None] * len(out) if moves_before is None
+             else [None if m is None else np.asarray(m, np.float32).reshape(o.shape[1], 3) for m, o in zip(moves_before, out)])
     left = 0
     for f0 in range(0, B * T, FRAME_BLOCK):
         sl = slice(f0, f0 + FRAME_BLOCK)
