@@ -98,16 +98,9 @@ def _topology(faces: np.ndarray) -> tuple[np.ndarray, ...]:
 
 @functools.lru_cache(maxsize=8)
 def _topology_cached(faces_bytes: bytes, shape: tuple[int, int]) -> tuple[np.ndarray, ...]:
-    """faces, then the canonical edges k of each face (corner k -> k+1, flipped where the index
-    order is reversed: edge_lo, edge_hi), the corner opposite each edge, the flips (F, 3), and
-    the ids of the vertices the faces use."""
-    faces = np.frombuffer(faces_bytes, np.int64).reshape(shape)
-    nxt = [1, 2, 0]
-    flip = faces > faces[:, nxt]
-    edge_lo = np.where(flip, faces[:, nxt], faces)
-    edge_hi = np.where(flip, faces, faces[:, nxt])
-    out = (faces, edge_lo, edge_hi, faces[:, [2, 0, 1]], flip, np.unique(faces))
-    return tuple(np.ascontiguousarray(a) for a in out)
+    """faces (contiguous int64) and the ids of the vertices they use."""
+    faces = np.ascontiguousarray(np.frombuffer(faces_bytes, np.int64).reshape(shape))
+    return faces, np.unique(faces)
 
 
 @per_array
@@ -136,33 +129,32 @@ class WindingGrid:
 
     def __init__(self, verts: np.ndarray, faces: np.ndarray, second: np.ndarray | None = None, region: np.ndarray | None = None):
         verts = _frames("verts", verts)
-        self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, used = _checked_topology(faces, verts.shape[1])
+        self.faces, used = _checked_topology(faces, verts.shape[1])
         faces = self.faces
         B, V = verts.shape[:2]
         self.B, self.V, self.F = B, V, len(faces)
         sets = [verts] if second is None else [verts, _frames("second", second)]
         if second is not None and sets[1].shape != verts.shape:
             raise InputShapeError("second", str(verts.shape), sets[1].shape)
-        # coordinate planes, float64 (exact copies of float32 input): u = x, v = z, depth y
-        names = [("u", "v", "y"), ("u2", "v2", "y2")][: len(sets)]
-        bufs = [[_POOL.take(name, B * V, np.float64) for name in trio] for trio in names]
-        for mesh, trio in zip(sets, bufs):
-            for buf, k in zip(trio, (0, 2, 1)):
-                np.copyto(buf[: B * V].reshape(B, V), mesh[..., k])
-        self.coords = [tuple(buf[: B * V] for buf in trio) for trio in bufs]  # (u, v, y) per vertex set, (B*V,) each
-        self.u, self.v, self.y = self.coords[0]
-        u2, v2, y2 = self.coords[-1]
+        # each vertex as (u, v, y) = (x, z, y), float64 (exact copies of float32 input), interleaved
+        # so that a face's corners are three reads of 24 bytes
+        names = ("X", "X2")[: len(sets)]
+        bufs = [_POOL.take(name, B * V * 3, np.float64) for name in names]
+        self.coords = []
+        for mesh, buf in zip(sets, bufs):
+            X = buf[: B * V * 3].reshape(B, V, 3)
+            for c, k in enumerate((0, 2, 1)):
+                np.copyto(X[..., c], mesh[..., k])
+            self.coords.append(X.reshape(B * V, 3))  # per vertex set
+        X2 = self.coords[-1]
 
         # grid over each frame's projected mesh (its own origin), cell CELL_EDGES median edges (of
         # every EDGE_SAMPLE-th face's first edge, frame 0)
         edge = verts[0, faces[::EDGE_SAMPLE, 1]].astype(np.float64) - verts[0, faces[::EDGE_SAMPLE, 0]]
         self.h = h = CELL_EDGES * max(float(np.median(np.linalg.norm(edge, axis=1))), 1e-6)
-        us = [c[0].reshape(B, V) for c in self.coords]
-        vs = [c[1].reshape(B, V) for c in self.coords]
-        if len(used) < V:
-            us, vs = [a[:, used] for a in us], [a[:, used] for a in vs]
-        lo = np.stack([np.min([a.min(1) for a in us], 0), np.min([a.min(1) for a in vs], 0)], -1)  # (B, 2)
-        hi = np.stack([np.max([a.max(1) for a in us], 0), np.max([a.max(1) for a in vs], 0)], -1)
+        planes = [c.reshape(B, V, 3)[:, used] if len(used) < V else c.reshape(B, V, 3) for c in self.coords]
+        lo = np.stack([np.min([a[..., 0].min(1) for a in planes], 0), np.min([a[..., 1].min(1) for a in planes], 0)], -1)  # (B, 2)
+        hi = np.stack([np.max([a[..., 0].max(1) for a in planes], 0), np.max([a[..., 1].max(1) for a in planes], 0)], -1)
         self.bounded = region is not None
         if region is None:
             self.region = np.tile([-np.inf, np.inf, -np.inf, np.inf], (B, 1))
@@ -179,21 +171,26 @@ class WindingGrid:
         extent = (hi - lo).max(0)
         self.ncell = np.floor(extent * (1.0 / h)).astype(np.int64) + 1
         ni, nj = int(self.ncell[0]), int(self.ncell[1])
-        # the bins, in buffers of this thread's pool (returned when the grid is collected)
+        # the bins, in buffers of this thread's pool (returned when the grid is collected); the
+        # first pass's face records only for the second
         start = _POOL.take("start", B * ni * nj + 1, np.int64)
-        pairs = int(kernels.count_pairs(self.u, self.v, u2, v2, self.faces, B, V, 1.0 / h, self.lo, ni, nj, self.region,
-                                        start[: B * ni * nj + 1]))
+        code = _POOL.take("code", V, np.uint8)
+        rec_face, rec_cells, rec_box = (_POOL.take("rec_face", B * self.F, np.int32), _POOL.take("rec_cells", 4 * B * self.F, np.int32),
+                                        _POOL.take("rec_box", 6 * B * self.F, np.float32))
+        m, pairs = kernels.bin_boxes(self.coords[0], X2, faces, B, V, 1.0 / h, self.lo, ni, nj, self.region, start[: B * ni * nj + 1],
+                                     code[:V], rec_face[: B * self.F], rec_cells[: 4 * B * self.F].reshape(-1, 4),
+                                     rec_box[: 6 * B * self.F].reshape(-1, 6))
+        pairs = int(pairs)
         cell_face, pair_box, fill = (_POOL.take("cell_face", pairs, np.int32), _POOL.take("pair_box", 6 * pairs, np.float32),
                                      _POOL.take("fill", B * ni * nj, np.int64))
         self.start, self.cell_face = start[: B * ni * nj + 1], cell_face[:pairs]
         self.pair_box = pair_box[: 6 * pairs].reshape(pairs, 6)
-        kernels.fill_pairs(self.u, self.v, self.y, u2, v2, y2, self.faces, B, V, 1.0 / h, self.lo, ni, nj, self.region, self.start,
-                           fill[: B * ni * nj], self.cell_face, self.pair_box)
-        for name, buf in zip(("start", "cell_face", "pair_box", "fill"), (start, cell_face, pair_box, fill)):
+        kernels.fill_pairs(int(m), nj, self.start, fill[: B * ni * nj], rec_face[: B * self.F], rec_cells[: 4 * B * self.F].reshape(-1, 4),
+                           rec_box[: 6 * B * self.F].reshape(-1, 6), self.cell_face, self.pair_box)
+        for name, buf in zip(("code", "rec_face", "rec_cells", "rec_box", "fill"), (code, rec_face, rec_cells, rec_box, fill)):
+            _POOL.give(name, buf)
+        for name, buf in zip(("start", "cell_face", "pair_box", *names), (start, cell_face, pair_box, *bufs)):
             weakref.finalize(self, _POOL.give, name, buf)
-        for trio, names_ in zip(bufs, names):
-            for name, buf in zip(names_, trio):
-                weakref.finalize(self, _POOL.give, name, buf)
 
     def count(self, points: np.ndarray, mesh: str = "first", down: np.ndarray | None = None) -> np.ndarray:
         """Winding number at each point of each frame (``mesh`` and ``down`` as in ``count_at``).
@@ -233,10 +230,9 @@ class WindingGrid:
         down = np.zeros(len(points), bool) if down is None else np.ascontiguousarray(down, bool)
         if down.shape != frame.shape:
             raise InputShapeError("down", "(P,)", down.shape)
-        w = kernels.count_crossings(
-            points, frame, down, *first, *second, self.faces, self.edge_lo, self.edge_hi, self.opposite, self.flip, self.V,
-            1.0 / self.h, self.lo, int(self.ncell[0]), int(self.ncell[1]), self.region, self.bounded, self.start,
-            self.cell_face, self.pair_box, mesh == "either")
+        w = kernels.count_crossings(points, frame, down, first, second, self.faces, self.V, 1.0 / self.h, self.lo, int(self.ncell[0]),
+                                    int(self.ncell[1]), self.region, self.bounded, self.start, self.cell_face, self.pair_box,
+                                    mesh == "either")
         outside = np.flatnonzero(w == kernels.UNKNOWN)
         if len(outside):  # beyond the region: the whole mesh's grid
             if self._whole is None:
