@@ -291,9 +291,19 @@ class DiffusedBody:
             raise InputShapeError("transforms", f"({len(X)}, {self.bones}, 4, 4)", transforms.shape)
         if fields is not None and fields.shape != X.shape[:2] + (len(self.bone_index) + 1,):
             raise InputShapeError("fields", f"{X.shape[:2] + (len(self.bone_index) + 1,)}", fields.shape)
-        w = np.maximum((self._skin(X) if fields is None else fields)[..., :-1], 0.0)  # (T, V, K) over the kept bones
-        w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
-        shaped = X + self.shape_offsets(X, offsets)
-        A = np.matmul(w, np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, V, 12)
-        A = A.reshape(X.shape[:2] + (3, 4))
-        return np.einsum("tvab,tvb->tva", A[..., :3], shaped, optimize=True) + A[..., 3]
+        fields = np.ascontiguousarray(self._skin(X) if fields is None else fields, np.float32)  # W~ over the kept bones, then the SDF
+        shaped = np.ascontiguousarray(X + self.shape_offsets(X, offsets), np.float32)
+        A = np.ascontiguousarray(np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, K, 12)
+        out = np.empty(X.shape, np.float32)
+        kernels.blend_pose(fields, shaped, A, out)  # clamped, normalised W~ blending the transforms (compiled)
+        return out
+
+
+def warm_up() -> None:
+    """Compile this module's kernels (``inference.diffused_kernels``: the band interpolation and
+    eq. 6.7's blend) or load numba's cache, on a 2-node grid, so that no request pays a first
+    compilation: every process that drapes calls it at start-up."""
+    grid = BandGrid(np.zeros(3, np.float32), 1.0, np.array([2, 2, 2]), np.arange(8), 2.0, np.array([2, 2, 2]))
+    fields = grid.interpolate(np.full((1, 3), 0.5, np.float32), np.ones((8, 2), np.float32), np.ones((8, 2), np.float32))
+    out = np.empty((1, 1, 3), np.float32)
+    kernels.blend_pose(fields[None], np.zeros((1, 1, 3), np.float32), np.zeros((1, 1, 12), np.float32), out)

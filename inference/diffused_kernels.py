@@ -76,3 +76,39 @@ def band_interpolate(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fi
                 q2 = origin[2] + np.float32(fine_h) * np.float32(k + d)
                 _coarse_add(out, n, w, q0, q1, q2, origin, coarse_inv_h, coarse_dims, coarse)
     return out
+
+
+@numba.njit(**_JIT)
+def blend_pose(weights, shaped, transforms, out):
+    """Eq. 6.7's blend at every point of every frame: w = max(W~, 0) / sum (the weights over the
+    kept bones, clamped and normalised), then
+
+        out[t, v] = sum_k w_k A_tk[:, :3] shaped[t, v] + sum_k w_k A_tk[:, 3],
+
+    the bones with no weight at the point skipped (~5 of ~23 carry one). The sums run in float64
+    and are rounded once.
+
+    weights    : (T, V, C) float32, W~ over the kept bones in the first K = transforms.shape[1]
+                 channels (later channels, the SDF, are not read)
+    shaped     : (T, V, 3) float32, X + B~s(X, beta), metres
+    transforms : (T, K, 12) float32, the kept bones' skinning transforms, rows of 3 x 4
+    out        : (T, V, 3) float32, metres
+    """
+    T, V, K = weights.shape[0], weights.shape[1], transforms.shape[1]
+    A = np.empty(12)
+    for t in range(T):
+        for v in range(V):
+            s = 0.0
+            for k in range(K):
+                s += max(np.float64(weights[t, v, k]), 0.0)
+            inv = 1.0 / max(s, 1e-12)
+            for c in range(12):
+                A[c] = 0.0
+            for k in range(K):
+                w = np.float64(weights[t, v, k])
+                if w > 0.0:
+                    for c in range(12):
+                        A[c] += w * transforms[t, k, c]
+            x, y, z = np.float64(shaped[t, v, 0]), np.float64(shaped[t, v, 1]), np.float64(shaped[t, v, 2])
+            for r in range(3):
+                out[t, v, r] = np.float32((A[4 * r] * x + A[4 * r + 1] * y + A[4 * r + 2] * z + A[4 * r + 3]) * inv)

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
-from inference import layers, repair, strain, winding
+from inference import diffused, layers, repair, strain, winding
 from inference.guard import nearest, push_kernels
 from inference.motion import self_contact
 from inference.asset_digest import AssetDigest
@@ -177,6 +177,7 @@ class Runtime:
             nearest.warm_up()  # and the guard's per-frame nearest body vertices
             push_kernels.warm_up()  # and its plane push
             self_contact.warm_up()  # and the arm lift's nearest torso points
+            diffused.warm_up()  # and the diffused body's interpolation and eq. 6.7's blend
         runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
         log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",
                  runtime.assets.combined[:16])
