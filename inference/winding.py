@@ -122,7 +122,7 @@ class WindingGrid:
              points to be asked: only the faces whose projected box meets it are binned (a
              garment's neighbourhood holds a quarter to a third of the body's faces, and the
              binning's cost is in proportion); a point outside it is answered by a grid of the
-             whole mesh, built when first needed
+             whole mesh in its frame, built when first needed
 
     The binning and the crossings run compiled (``inference.winding_kernels``).
     """
@@ -166,7 +166,7 @@ class WindingGrid:
             hi = np.maximum(np.minimum(hi, self.region[:, [1, 3]]), lo)
         self.lo = lo
         self._sets = (verts, second)  # for the whole mesh's grid (``count_at``)
-        self._whole: WindingGrid | None = None
+        self._whole: dict[int, WindingGrid] = {}  # per frame, the whole mesh's grid (``count_at``)
         # the kernels' own cell formula, floor((x - lo) / h) as a product (module winding_kernels)
         extent = (hi - lo).max(0)
         self.ncell = np.floor(extent * (1.0 / h)).astype(np.int64) + 1
@@ -234,10 +234,12 @@ class WindingGrid:
                                     int(self.ncell[1]), self.region, self.bounded, self.start, self.cell_face, self.pair_box,
                                     mesh == "either")
         outside = np.flatnonzero(w == kernels.UNKNOWN)
-        if len(outside):  # beyond the region: the whole mesh's grid
-            if self._whole is None:
-                self._whole = WindingGrid(self._sets[0], self.faces, second=self._sets[1])
-            w[outside] = self._whole.count_at(points[outside], frame[outside], mesh, down[outside])
+        for b in np.unique(frame[outside]):  # beyond the region: the whole mesh's grid of that frame alone
+            rows = outside[frame[outside] == b]
+            if b not in self._whole:
+                second = None if self._sets[1] is None else self._sets[1][b:b + 1]
+                self._whole[b] = WindingGrid(self._sets[0][b:b + 1], self.faces, second=second)
+            w[rows] = self._whole[b].count_at(points[rows], np.zeros(len(rows), np.int64), mesh, down[rows])
         return w
 
 

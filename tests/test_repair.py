@@ -128,12 +128,18 @@ def test_a_grid_over_a_region_bins_fewer_faces_and_answers_every_point():
     inner[..., 1] = rng.uniform(-1.2, 1.2, inner.shape[:2])
     for mesh in ("first", "second", "either"):
         np.testing.assert_array_equal(grid.count(inner, mesh), whole.count(inner, mesh))
-    assert grid._whole is None  # nothing beyond the region was asked
+    assert not grid._whole  # nothing beyond the region was asked
     q = rng.uniform(-2.2, 2.2, (2, 2000, 3)).astype(np.float32)
     q[1] += [0.0, 0.0, 3.0]
     for mesh in ("first", "second", "either"):
         np.testing.assert_array_equal(grid.count(q, mesh), whole.count(q, mesh))
-    assert grid._whole is not None
+    assert sorted(grid._whole) == [0, 1]  # a grid of the whole mesh per frame asked beyond it
+    # a point beyond the region of one frame only: only that frame's whole mesh is binned
+    grid = WindingGrid(big, f, second=frames, region=region)
+    far = np.array([[[0.0, 0.0, 0.0]], [[1.8, 0.0, 3.0]]], np.float32)
+    for mesh in ("first", "second", "either"):
+        np.testing.assert_array_equal(grid.count(far, mesh), whole.count(far, mesh))
+    assert list(grid._whole) == [1]
     with pytest.raises(InputShapeError):
         WindingGrid(big, f, region=region[:1])
 
