@@ -40,7 +40,7 @@ import numpy as np
 import onnxruntime as ort
 import scipy.sparse
 
-from inference.diffused import DEFAULT_PATH, DiffusedBody
+from inference.diffused import DEFAULT_PATH, BodyOffsets, DiffusedBody
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.learned import MODELS_DIR, MissingModelError, ort_session
@@ -106,17 +106,26 @@ def push_out(diffused: DiffusedBody, X: np.ndarray, margin_m: float, steps: int 
     return X, int(moved)
 
 
-def push_fields(diffused: DiffusedBody, X: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+def push_fields(diffused: DiffusedBody, X: np.ndarray, margin_m: float,
+                offsets: BodyOffsets | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """``push_out`` and the fields eq. 6.7 reads (``DiffusedBody.fields``) in one gather: the SDF
     is the fields' last channel (the same interpolation, bitwise), so only the points pushed are
-    read again. X (..., 3) metres -> (X' float32 (..., 3), fields (..., K + 1))."""
+    read again; with the body's ``offsets``, B~s(X', beta) comes from the same pass
+    (``DiffusedBody.fields_and_offsets``). X (..., 3) metres -> (X' float32 (..., 3), fields
+    (..., K + 1), B~s (..., 3) or None)."""
     X = np.array(X, np.float32, copy=True)
-    fields = diffused.fields(X)
+
+    def read(points: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        return (diffused.fields(points), None) if offsets is None else diffused.fields_and_offsets(points, offsets)
+
+    fields, shape_offsets = read(X)
     low = fields[..., -1] < margin_m - PUSH_TOLERANCE_M
     if low.any():
         X[low] = push_out(diffused, X[low], margin_m)[0]
-        fields[low] = diffused.fields(X[low])
-    return X, fields
+        fields[low], again = read(X[low])
+        if shape_offsets is not None:
+            shape_offsets[low] = again
+    return X, fields, shape_offsets
 
 
 @dataclass

@@ -153,6 +153,18 @@ class BandGrid:
             np.ascontiguousarray(coarse, np.float32))
         return out.reshape(p.shape[:-1] + (fine.shape[1],))
 
+    def interpolate_pair(self, points: np.ndarray, fine: np.ndarray, coarse: np.ndarray, fine2: np.ndarray,
+                         coarse2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``interpolate`` of two tables at the same points, (..., C) and (..., C2), in one pass
+        (each bitwise its own ``interpolate``)."""
+        p = np.asarray(points, np.float32)
+        flat = np.ascontiguousarray(p.reshape(-1, 3))
+        out, out2 = kernels.band_interpolate_pair(
+            flat, self.fine.origin, np.float32(self.fine.spacing), np.float32(1.0 / self.fine.spacing), self.fine.dims, self.row,
+            np.ascontiguousarray(fine, np.float32), np.float32(1.0 / self.coarse.spacing), self.coarse.dims,
+            np.ascontiguousarray(coarse, np.float32), np.ascontiguousarray(fine2, np.float32), np.ascontiguousarray(coarse2, np.float32))
+        return out.reshape(p.shape[:-1] + (fine.shape[1],)), out2.reshape(p.shape[:-1] + (fine2.shape[1],))
+
     def interpolate_numpy(self, points: np.ndarray, fine: np.ndarray, coarse: np.ndarray) -> np.ndarray:
         """``interpolate`` in numpy, POINT_BLOCK points at a time (the reference of the compiled one in the tests)."""
         p = np.asarray(points, np.float32)
@@ -232,6 +244,12 @@ class DiffusedBody:
         float32, one gather: what ``pose`` reads (its ``fields``), its last channel ``sdf``'s value."""
         return self._skin(np.asarray(points, np.float32))
 
+    def fields_and_offsets(self, points: np.ndarray, offsets: BodyOffsets) -> tuple[np.ndarray, np.ndarray]:
+        """``fields`` and ``shape_offsets`` at points (..., 3) in one pass over the grids: (..., K + 1)
+        and (..., 3) float32, each bitwise what its own call gives."""
+        return self.grid.interpolate_pair(np.asarray(points, np.float32), self.skin["fine"], self.skin["coarse"], offsets.fine,
+                                          offsets.coarse)
+
     def weights(self, points: np.ndarray) -> np.ndarray:
         """W~(p) (eq. 6.4): (..., 3) -> (..., J) float32, non-negative rows summing to 1."""
         return self._full_weights(self._skin(points)[..., :-1])
@@ -275,14 +293,16 @@ class DiffusedBody:
         return X + self.shape_offsets(X, offsets)
 
     # ------------------------------------------------------------------ eq. 6.7
-    def pose(self, X: np.ndarray, offsets: BodyOffsets, transforms: np.ndarray, fields: np.ndarray | None = None) -> np.ndarray:
+    def pose(self, X: np.ndarray, offsets: BodyOffsets, transforms: np.ndarray, fields: np.ndarray | None = None,
+             shape_offsets: np.ndarray | None = None) -> np.ndarray:
         """M_G(X, beta, theta) (eq. 6.7) with W~ and B~s at each frame's own canonical points.
 
-        X          : (T, V, 3) canonical garment per frame, metres
-        offsets    : ``offsets(rest_vertices)`` of the body
-        transforms : (T, J, 4, 4) the body's skinning transforms per frame
-        fields     : ``fields(X)`` if already read (``inference.canonical.push_fields``)
-        returns      (T, V, 3) float32 posed garment
+        X             : (T, V, 3) canonical garment per frame, metres
+        offsets       : ``offsets(rest_vertices)`` of the body
+        transforms    : (T, J, 4, 4) the body's skinning transforms per frame
+        fields        : ``fields(X)`` if already read (``inference.canonical.push_fields``)
+        shape_offsets : ``shape_offsets(X, offsets)`` (T, V, 3) if already read (the same)
+        returns         (T, V, 3) float32 posed garment
         """
         X = np.asarray(X, np.float32)
         if X.ndim != 3 or X.shape[-1] != 3:
@@ -292,7 +312,9 @@ class DiffusedBody:
         if fields is not None and fields.shape != X.shape[:2] + (len(self.bone_index) + 1,):
             raise InputShapeError("fields", f"{X.shape[:2] + (len(self.bone_index) + 1,)}", fields.shape)
         fields = np.ascontiguousarray(self._skin(X) if fields is None else fields, np.float32)  # W~ over the kept bones, then the SDF
-        shaped = np.ascontiguousarray(X + self.shape_offsets(X, offsets), np.float32)
+        if shape_offsets is not None and shape_offsets.shape != X.shape:
+            raise InputShapeError("shape_offsets", str(X.shape), shape_offsets.shape)
+        shaped = np.ascontiguousarray(X + (self.shape_offsets(X, offsets) if shape_offsets is None else shape_offsets), np.float32)
         A = np.ascontiguousarray(np.asarray(transforms, np.float32)[:, self.bone_index, :3, :].reshape(len(X), -1, 12))  # (T, K, 12)
         out = np.empty(X.shape, np.float32)
         kernels.blend_pose(fields, shaped, A, out)  # clamped, normalised W~ blending the transforms (compiled)
@@ -300,10 +322,12 @@ class DiffusedBody:
 
 
 def warm_up() -> None:
-    """Compile this module's kernels (``inference.diffused_kernels``: the band interpolation and
-    eq. 6.7's blend) or load numba's cache, on a 2-node grid, so that no request pays a first
+    """Compile this module's kernels (``inference.diffused_kernels``: the band interpolation, of one
+    table and of two, and eq. 6.7's blend) or load numba's cache, on a 2-node grid, so that no request pays a first
     compilation: every process that drapes calls it at start-up."""
     grid = BandGrid(np.zeros(3, np.float32), 1.0, np.array([2, 2, 2]), np.arange(8), 2.0, np.array([2, 2, 2]))
-    fields = grid.interpolate(np.full((1, 3), 0.5, np.float32), np.ones((8, 2), np.float32), np.ones((8, 2), np.float32))
+    table = np.ones((8, 2), np.float32)
+    fields = grid.interpolate(np.full((1, 3), 0.5, np.float32), table, table)
+    grid.interpolate_pair(np.full((1, 3), 0.5, np.float32), table, table, table[:, :1], table[:, :1])
     out = np.empty((1, 1, 3), np.float32)
     kernels.blend_pose(fields[None], np.zeros((1, 1, 3), np.float32), np.zeros((1, 1, 12), np.float32), out)

@@ -58,9 +58,30 @@ def band_interpolate(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fi
                   row, -1 off the band
     coarse_inv_h: 1 / the coarse spacing; coarse_dims (3,) int64
     """
+    out = np.zeros((points.shape[0], fine.shape[1]), np.float32)
+    _interpolate(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fine, coarse_inv_h, coarse_dims, coarse, out,
+                 fine[:, :0], coarse[:, :0], out[:, :0])
+    return out
+
+
+@numba.njit(**_JIT)
+def band_interpolate_pair(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fine, coarse_inv_h, coarse_dims, coarse,
+                          fine2, coarse2):
+    """``band_interpolate`` of two tables at the same points, (N, C) and (N, C2), each point's cell
+    and corner weights found once; each table's values are bitwise those of its own call."""
+    out = np.zeros((points.shape[0], fine.shape[1]), np.float32)
+    out2 = np.zeros((points.shape[0], fine2.shape[1]), np.float32)
+    _interpolate(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fine, coarse_inv_h, coarse_dims, coarse, out,
+                 fine2, coarse2, out2)
+    return out, out2
+
+
+@numba.njit(**_JIT)
+def _interpolate(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fine, coarse_inv_h, coarse_dims, coarse, out,
+                 fine2, coarse2, out2):
+    """out[n] (+)= the first table's field at point n, out2[n] the second's (zero channels: none)."""
     N = points.shape[0]
-    C = fine.shape[1]
-    out = np.zeros((N, C), np.float32)
+    C, C2 = fine.shape[1], fine2.shape[1]
     for n in range(N):
         i, j, k, t0, t1, t2 = _cell(points[n, 0], points[n, 1], points[n, 2], origin, fine_inv_h, fine_dims)
         for c in range(8):
@@ -70,12 +91,15 @@ def band_interpolate(points, origin, fine_h, fine_inv_h, fine_dims, band_row, fi
             if r >= 0:
                 for ch in range(C):
                     out[n, ch] += w * fine[r, ch]
+                for ch in range(C2):
+                    out2[n, ch] += w * fine2[r, ch]
             else:
                 q0 = origin[0] + np.float32(fine_h) * np.float32(i + a)
                 q1 = origin[1] + np.float32(fine_h) * np.float32(j + b)
                 q2 = origin[2] + np.float32(fine_h) * np.float32(k + d)
                 _coarse_add(out, n, w, q0, q1, q2, origin, coarse_inv_h, coarse_dims, coarse)
-    return out
+                if C2:
+                    _coarse_add(out2, n, w, q0, q1, q2, origin, coarse_inv_h, coarse_dims, coarse2)
 
 
 @numba.njit(**_JIT)

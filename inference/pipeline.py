@@ -297,9 +297,9 @@ def drape(
             with timer("dynamics"):  # X_t = D(R(beta, gamma_1..t))
                 X, h_t = canonical.frames(g, shape.phenotypes, gamma, segments, h0, push=False)
             with timer("skin"):  # pushed out of the canonical body, then eq. 6.7 with W~ and B~s at every frame's own points
-                X, fields = push_fields(d, X, margin(g))
                 offsets = d.offsets(shape.rest_vertices[0])
-                frames = d.pose(X, offsets, transforms[0], fields)
+                X, fields, shape_offsets = push_fields(d, X, margin(g), offsets)
+                frames = d.pose(X, offsets, transforms[0], fields, shape_offsets)
             with timer("strain"):  # the decoded garment's edges back within its category's strain limit (inference.strain)
                 out = canonical.strain_limit(g)(frames)[None]
             if len(garments) == 1:

@@ -41,10 +41,17 @@ def test_push_out_moves_only_points_within_the_margin_and_leaves_them_at_it(setu
     far = before >= 0.003 - PUSH_TOLERANCE_M
     np.testing.assert_array_equal(Y[far], X[far])
     # the one-gather form the pipeline runs: the same points, and the fields eq. 6.7 reads at them
-    Z, fields = push_fields(d, X.reshape(2, -1, 3), 0.003)
+    Z, fields, none = push_fields(d, X.reshape(2, -1, 3), 0.003)
+    assert none is None
     np.testing.assert_array_equal(Z.reshape(-1, 3), Y)
     np.testing.assert_array_equal(fields, d.fields(Y).reshape(2, -1, fields.shape[-1]))
     np.testing.assert_array_equal(fields[..., -1].ravel(), after)
+    # with a body's offsets: B~s at the pushed points from the same pass, bitwise its own read
+    offsets = d.offsets(d.neutral_vertices + np.float32(0.01))
+    Z2, fields2, shape_offsets = push_fields(d, X.reshape(2, -1, 3), 0.003, offsets)
+    np.testing.assert_array_equal(Z2, Z)
+    np.testing.assert_array_equal(fields2, fields)
+    np.testing.assert_array_equal(shape_offsets, d.shape_offsets(Y, offsets).reshape(2, -1, 3))
 
 
 def test_canonical_fit_keeps_the_garment_out_of_shaped_bodies_where_the_retarget_does_not(setup):

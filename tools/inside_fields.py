@@ -176,7 +176,7 @@ def learned_clearance(body, can, catalog, case, e, garments) -> None:
     for g in garments:
         asset = catalog.get(g)
         X, _ = can.frames(asset, shape.phenotypes, gamma, [motion.num_frames], push=False)
-        X0, _ = push_fields(d, X[start:], margin(asset))
+        X0 = push_fields(d, X[start:], margin(asset))[0]
         X1 = push_clear(can, X0.reshape(-1, 3), margin(asset), e).reshape(X0.shape)
         pct = [collision_rates(can.strain_limit(asset)(d.pose(XX, offsets, T))[None], skin, body.faces)["inside_pct_clean"] for XX in (X0, X1)]
         moved = np.linalg.norm(X1 - X0, axis=-1)
