@@ -20,9 +20,10 @@ a ray through a projected vertex counts as well. Only points on the surface are 
 compiled (numba: ``inference.winding_kernels``); a grid's bins live in per-thread buffers that the
 next grid reuses.
 
-Cost per frame (27,420-face body, 5,148 T-shirt points, one thread; ``python bench/bench_canonical.py``):
-the grid ~1.8 ms, or ~0.9 over a garment's region (``WindingGrid``'s ``region``: only the faces
-over the points asked), the count ~0.7 ms; the same algorithm in numpy took ~9 + ~7 ms. A
+Cost per frame (27,420-face body, 5,148 T-shirt points, one thread; ``python bench/bench_canonical.py``,
+session 37): the grid ~1.8 ms, or ~0.9 over a garment's region (``WindingGrid``'s ``region``: only
+the faces over the points asked), the count ~0.7 ms; the same algorithm in numpy took ~9 + ~7 ms
+(session 42's kernels: ``inference.winding_kernels``). A
 bounding-volume hierarchy refitted per frame (0.3 ms) with a ray along each point's outward axis
 gave the same counts but cost 3.2 ms to count (a branchy traversal, ~45 boxes a point at ~30 ns
 each, against ~18 contiguous pre-tests in a cell), so the grid stays.
@@ -82,7 +83,8 @@ class _Pool(threading.local):
 
     def give(self, name: str, buf: np.ndarray) -> None:
         """Keep one buffer per name (the larger), so that a thread holds at most one grid's worth
-        (~40 MB for FRAME_BLOCK frames of the body)."""
+        (~60 MB for FRAME_BLOCK frames of the body and its inflated copy, the binning's face
+        records included)."""
         free = self.free.setdefault((name, buf.dtype.str), [])
         if not free or free[0].size < buf.size:
             free[:] = [buf]
