@@ -211,6 +211,41 @@ def test_the_compiled_interpolation_equals_the_numpy_one(built):
     assert g.interpolate(p.reshape(2, 1100, 3), fine, coarse).shape == (2, 1100, 1)
 
 
+def test_the_pair_interpolation_equals_two_single_ones(built):
+    """BandGrid.interpolate_pair: each table's values bitwise those of its own interpolate."""
+    diffused, _ = built
+    rng = np.random.default_rng(6)
+    V = diffused.neutral_vertices
+    p = np.concatenate([V[rng.choice(len(V), 1500)] + rng.normal(0.0, 0.08, (1500, 3)),
+                        rng.uniform(-3.0, 3.0, (100, 3))]).astype(np.float32).reshape(2, 800, 3)
+    offsets = diffused.offsets(V + rng.normal(0.0, 0.01, V.shape).astype(np.float32))
+    a, b = diffused.fields_and_offsets(p, offsets)
+    np.testing.assert_array_equal(a, diffused.fields(p))
+    np.testing.assert_array_equal(b, diffused.shape_offsets(p, offsets))
+
+
+def test_the_compiled_blend_equals_eq_6_7_in_numpy():
+    """inference.diffused_kernels.blend_pose against the blend written in numpy: weights clamped
+    at 0 and normalised (a row with no positive weight poses nothing), the transforms blended,
+    applied to the shaped points; extra channels after the bones (the SDF) are not read."""
+    from inference.diffused_kernels import blend_pose
+
+    rng = np.random.default_rng(7)
+    T, N, K = 3, 400, 6
+    fields = rng.normal(0.2, 0.5, (T, N, K + 1)).astype(np.float32)
+    fields[0, :5, :K] = -1.0  # no positive weight
+    shaped = rng.normal(0.0, 0.5, (T, N, 3)).astype(np.float32)
+    A = rng.normal(0.0, 1.0, (T, K, 12)).astype(np.float32)
+    w = np.maximum(fields[..., :K].astype(np.float64), 0.0)
+    w /= np.maximum(w.sum(-1, keepdims=True), 1e-12)
+    M = np.einsum("tnk,tkc->tnc", w, A.astype(np.float64)).reshape(T, N, 3, 4)
+    want = np.einsum("tnab,tnb->tna", M[..., :3], shaped.astype(np.float64)) + M[..., 3]
+    got = np.empty((T, N, 3), np.float32)
+    blend_pose(fields, shaped, A, got)
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    np.testing.assert_array_equal(got[0, :5], 0.0)
+
+
 def test_the_posed_term_keeps_the_projected_garment_out_of_the_simulated_body(built):
     """E_posed (``ProjectionSettings.w_posed``): a target pressed 2 mm into the posed body is
     projected with its posed garment back out of it; without the term most of it stays in. (The

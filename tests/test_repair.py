@@ -58,6 +58,40 @@ def test_far_from_the_origin_the_compiled_pre_test_stays_exact():
     np.testing.assert_array_equal(WindingGrid(v64[None], f).count(q[None])[0], exact)
 
 
+def _bellows(sections=32, rings=300, height=3.0):
+    """A closed, outward tube along y whose radius waves between 4 and 6 cm every 4 cm of height:
+    every ring's band of faces projects onto the same annulus in (x, z)."""
+    y = np.linspace(-height / 2, height / 2, rings)
+    r = 0.05 + 0.01 * np.sin(2 * np.pi * y / 0.04)
+    a = 2 * np.pi * np.arange(sections) / sections
+    v = np.stack([r[:, None] * np.cos(a)[None], np.repeat(y[:, None], sections, 1), r[:, None] * np.sin(a)[None]], -1).reshape(-1, 3)
+    v = np.concatenate([v, [[0.0, y[0], 0.0], [0.0, y[-1], 0.0]]])
+    i, j = np.meshgrid(np.arange(rings - 1), np.arange(sections), indexing="ij")
+    a0, a1 = (i * sections + j).ravel(), (i * sections + (j + 1) % sections).ravel()
+    bot, top, k = len(v) - 2, len(v) - 1, np.arange(sections)
+    last = (rings - 1) * sections
+    f = np.concatenate([np.stack([a0, a0 + sections, a1], 1), np.stack([a1, a0 + sections, a1 + sections], 1),
+                        np.stack([np.full(sections, bot), k, (k + 1) % sections], 1),
+                        np.stack([np.full(sections, top), last + (k + 1) % sections, last + k], 1)])
+    return v, f.astype(np.int64)
+
+
+def test_a_cell_holding_thousands_of_faces_counts_them_all():
+    """Every ring of a tall waved tube along the ray's axis (y) projects onto the same annulus,
+    so a cell there holds faces of all 300 rings (far more than the count kernel's first list of
+    candidates), and the counts still equal libigl's, rays up and down."""
+    import igl
+
+    v, f = _bellows()
+    grid = WindingGrid(v[None], f)
+    assert np.diff(grid.start).max() > 1000
+    q = np.random.default_rng(4).uniform([-0.07, -1.6, -0.07], [0.07, 1.6, 0.07], (3000, 3))
+    exact = np.round(igl.winding_number(v, f, q)).astype(np.int32)
+    assert 500 < exact.sum() < 2500 and set(np.unique(exact)) == {0, 1}
+    for down in (False, True):
+        np.testing.assert_array_equal(grid.count(q[None], down=np.full((1, len(q)), down))[0], exact)
+
+
 def test_points_inside_the_overlap_or_a_part_end_outside_and_others_stay():
     v, f = _two_spheres()
     # inside both parts (the lens: no target among the nearest 32 is outside), inside one part
