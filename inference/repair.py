@@ -551,9 +551,14 @@ def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None) -> np.ndarra
     ``targets`` (n, k, 3) that ``accept(frame, idx, targets) -> bool`` takes, if given; returns
     (n,) bool, True where one was found."""
     k = targets.shape[1]
+    if accept is None:  # one compiled pass: each point's targets nearest first, to the first outside one
+        best = grid.first_outside(Pb[frame, idx], targets, frame, mesh)
+        ok = best >= 0
+        Pb[frame[ok], idx[ok]] = targets[np.flatnonzero(ok), best[ok]]
+        return ok
     # test the targets nearest first, ROUND per point at a time, in the block's grid (each against
-    # its own frame): the first outside one is the nearest outside one
-    order = np.argsort(np.linalg.norm(targets - Pb[frame, idx][:, None], axis=-1), axis=1)
+    # its own frame): the first outside one is the nearest outside one (equal distances in column order)
+    order = np.argsort(np.linalg.norm(targets - Pb[frame, idx][:, None], axis=-1), axis=1, kind="stable")
     best = np.full(len(frame), -1)
     pending = np.arange(len(frame))
     for r0 in range(0, k, ROUND):

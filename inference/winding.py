@@ -245,6 +245,32 @@ class WindingGrid:
         return w
 
 
+    def first_outside(self, points: np.ndarray, targets: np.ndarray, frame: np.ndarray, mesh: str = "first") -> np.ndarray:
+        """Per point, its nearest target with winding number 0 (``mesh`` as in ``count_at``): points
+        (n, 3) float32, targets (n, m, 3) float32, frame (n,) int; nearest by float32 distance, equal
+        distances in their column order; each target's ray along its move's side of y (down where
+        it lies below its point). Returns (n,) int64 columns, -1 where no target is outside; a
+        target beyond the grid's region is counted by the whole mesh's grid, as ``count_at`` does
+        (those points take ``count_at``'s path)."""
+        if mesh not in ("first", "second", "either") or (mesh != "first" and len(self.coords) < 2):
+            raise ValueError(f"mesh {mesh!r} of a grid of {len(self.coords)} vertex set(s)")
+        points = np.ascontiguousarray(points, np.float32)
+        targets = np.ascontiguousarray(targets, np.float32)
+        frame = np.ascontiguousarray(frame, np.int64)
+        if points.ndim != 2 or points.shape[1] != 3 or targets.shape[::2] != (len(points), 3) or frame.shape != points.shape[:1]:
+            raise InputShapeError("targets", "(n, m, 3) with points (n, 3) and frame (n,)", targets.shape)
+        first, second = (self.coords[-1], self.coords[0]) if mesh == "second" else (self.coords[0], self.coords[-1])
+        best = kernels.first_outside(points, targets, frame, first, second, self.faces, self.V, 1.0 / self.h, self.lo, int(self.ncell[0]),
+                                     int(self.ncell[1]), self.region, self.bounded, self.start, self.cell_face, self.pair_box,
+                                     mesh == "either")
+        for p in np.flatnonzero(best == -2):  # a target beyond the region: each in order, by count_at
+            order = np.argsort(np.linalg.norm(targets[p] - points[p], axis=-1), kind="stable")
+            down = targets[p, order, 1] < points[p, 1]
+            free = np.flatnonzero(self.count_at(targets[p, order], np.full(len(order), frame[p]), mesh, down) == 0)
+            best[p] = order[free[0]] if len(free) else -1
+        return best
+
+
 def ray_down(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Which points' rays should run along -y (``WindingGrid.count``'s ``down``): those whose
     area-weighted vertex normal points down y, so that the ray leaves a garment lying on the skin

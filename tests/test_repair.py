@@ -92,6 +92,33 @@ def test_a_cell_holding_thousands_of_faces_counts_them_all():
         np.testing.assert_array_equal(grid.count(q[None], down=np.full((1, len(q)), down))[0], exact)
 
 
+def test_the_first_outside_target_is_the_nearest_outside_one():
+    """WindingGrid.first_outside equals testing every target with count_at, nearest first (a
+    stable order), for either mesh of a grid over a region, targets beyond it included."""
+    v, f = _two_spheres()
+    frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)
+    big = inflated(frames, f, 0.05)
+    region = np.array([[-1.2, 1.2, -1.0, 1.0], [-1.2, 1.2, 2.0, 4.0]])
+    grid = WindingGrid(big, f, second=frames, region=region)
+    rng = np.random.default_rng(8)
+    frame = rng.integers(0, 2, 400)
+    points = (rng.uniform(-1.0, 1.0, (400, 3)) + [0.0, 0.0, 3.0] * frame[:, None]).astype(np.float32)
+    targets = (points[:, None] + rng.normal(0.0, 0.6, (400, 16, 3))).astype(np.float32)  # some beyond the region
+    targets[:20, 5] = targets[:20, 2]  # equal distances: the first column wins
+    points[20:40] = [-0.9, 0.0, 0.0] + np.float32(3.0) * frame[20:40, None] * [0, 0, 1]  # deep in a part: no free target
+    targets[20:40] = points[20:40, None] + rng.normal(0.0, 0.05, (20, 16, 3)).astype(np.float32)
+    for mesh in ("first", "second", "either"):
+        got = grid.first_outside(points, targets, frame, mesh)
+        order = np.argsort(np.linalg.norm(targets - points[:, None], axis=-1), axis=1, kind="stable")
+        tried = np.take_along_axis(targets, order[..., None], 1)
+        free = grid.count_at(tried.reshape(-1, 3), np.repeat(frame, 16), mesh,
+                             (tried[..., 1] < points[:, None, 1]).ravel()).reshape(400, 16) == 0
+        want = np.where(free.any(1), order[np.arange(400), free.argmax(1)], -1)
+        np.testing.assert_array_equal(got, want)
+        assert (got == -1).any() and (got >= 0).any() and (got[:20] != 5).all()
+    assert grid._whole  # some targets lay beyond the region
+
+
 def test_points_inside_the_overlap_or_a_part_end_outside_and_others_stay():
     v, f = _two_spheres()
     # inside both parts (the lens: no target among the nearest 32 is outside), inside one part
