@@ -61,7 +61,7 @@ from scipy.spatial import cKDTree
 
 from inference import mesh_kernels
 from inference.errors import InputShapeError
-from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings
+from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings, first_crossings
 from inference.mesh import content_key, faces_touching, per_array
 from inference.nearness import near, nearest
 from inference.winding import check_faces
@@ -440,3 +440,5 @@ def warm_up() -> None:
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     anchor_crossings(np.full((1, 1, 3), 0.1, np.float32), np.full((1, 1, 3), 2.0, np.float32), LayerFrames(tet, faces), exiting=True)
     anchor_normals(tet, faces.astype(np.int32), np.arange(4))
+    # and the final stage's crossings of the faces it moved (``inference.repair._sink_under_moved``)
+    first_crossings(np.full((1, 3), 0.1), np.full((1, 3), 2.0), tet[0].astype(np.float64), faces.astype(np.int64), 0.5, False)
