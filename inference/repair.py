@@ -67,7 +67,7 @@ the garments' region (REGION_M; ~0.8 ms, once per block of frames, shared by the
 inflated copy ~0.2 ms), the count at the garment's 5,148 vertices (~1.1 ms), and for the points
 within the clearance their nearest skin vertices (a grid per frame, ~0.4 ms), their targets
 (~0.5 ms) and the count at them (~0.7 ms): ~4.2 ms in all (bench tables in docs/benchmarks.md;
-session 42's machine, ~1.5x slower: the grid 1.1, the count 1.1, ~4.1 ms in all).
+session 42's machine, ~1.5x slower: the grid 1.1, the count 1.1, ~4.0 ms in all).
 
 Units: metres. Arrays: float32, batch axis first.
 """
@@ -124,7 +124,8 @@ BAND_MOVE_M = 0.003
 # frame (T-shirt, `dance`); the whole body's grid was needed in 6 of ~2,000 frames of a BVH crouch
 # sweep (1 at 10 cm), in none of 80 service requests (six garments and outfits, random bodies).
 REGION_M = 0.03
-# Targets tested per point at a time, nearest first.
+# Targets tested per point at a time, nearest first, where an outer layer must accept them (an
+# inner layer's points; the others take ``WindingGrid.first_outside``, one at a time, compiled).
 ROUND = 4
 # A point this stage moves farther than HOLD_FROM_M in two consecutive frames of a motion, the
 # second time against the first (to the other side of a limb), keeps the first side where a
