@@ -122,7 +122,7 @@ BAND_MOVE_M = 0.003
 # A target beyond it (a point at the garment's edge whose free skin lies farther out) is answered
 # by a grid of the whole body in its frame. 3 against 10 cm: the block's grid 1.51 -> 1.08 ms a
 # frame (T-shirt, `dance`); the whole body's grid was needed in 6 of ~2,000 frames of a BVH crouch
-# sweep (1 at 10 cm), in none of 80 service requests (six garments and outfits, random bodies).
+# sweep (1 at 10 cm), in none of 68 service requests (seven garments and outfits, random bodies).
 REGION_M = 0.03
 # Targets tested per point at a time, nearest first, where an outer layer must accept them (an
 # inner layer's points; the others take ``WindingGrid.first_outside``, one at a time, compiled).
