@@ -84,6 +84,19 @@ def _cell_range(lo, hi, origin, inv_h, n):
     return i0, i1
 
 
+@numba.njit(inline="always", **_JIT)
+def _next_cell(i, j, k, b0, b1, c0, c1):
+    """The cell after (i, j, k) in a box of cells [., .] x [b0, b1] x [c0, c1], k fastest."""
+    k += 1
+    if k > c1:
+        k = c0
+        j += 1
+        if j > b1:
+            j = b0
+            i += 1
+    return i, j, k
+
+
 @numba.njit(**_JIT)
 def _bin_faces(B, Fb, h):
     """Bin the faces Fb of B into a uniform grid of cell h by their boxes: returns origin (3,),
@@ -115,13 +128,7 @@ def _bin_faces(B, Fb, h):
         i, j, k = a0, b0, c0
         for _ in range((a1 - a0 + 1) * (b1 - b0 + 1) * (c1 - c0 + 1)):
             start[(i * n1 + j) * n2 + k + 1] += 1
-            k += 1
-            if k > c1:
-                k = c0
-                j += 1
-                if j > b1:
-                    j = b0
-                    i += 1
+            i, j, k = _next_cell(i, j, k, b0, b1, c0, c1)
     for c in range(n0 * n1 * n2):
         start[c + 1] += start[c]
     members = np.empty(start[-1], np.int64)
@@ -133,13 +140,7 @@ def _bin_faces(B, Fb, h):
             c = (i * n1 + j) * n2 + k
             members[fill[c]] = f
             fill[c] += 1
-            k += 1
-            if k > c1:
-                k = c0
-                j += 1
-                if j > b1:
-                    j = b0
-                    i += 1
+            i, j, k = _next_cell(i, j, k, b0, b1, c0, c1)
     return origin, top, dims, boxes, cells, start, members
 
 
