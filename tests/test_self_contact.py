@@ -97,17 +97,69 @@ def test_nearest_torso_point_is_the_kd_trees_within_the_reach():
     from scipy.spatial import cKDTree
 
     from inference.motion import self_contact
+    from inference.motion.arm_kernels import arm_steps
     from inference.repair_kernels import frame_knn
 
     rng = np.random.default_rng(5)
     torso = rng.uniform(-0.2, 0.2, (3, 400, 3)).astype(np.float32)
     arm = rng.uniform(-0.3, 0.3, (4, 150, 3)).astype(np.float32)
     frames = np.array([2, 0, 2, 1], np.int64)
-    dist, near = self_contact._nearest_torso(torso, arm, frames, 0.05)
+    near, found = self_contact._nearest_torso(torso, arm, frames, 0.05)
+    near, found = near.reshape(4, 150), found.reshape(4, 150)
     for a, t in enumerate(frames):
         d, i = cKDTree(torso[t]).query(arm[a], k=1, distance_upper_bound=0.05)
-        np.testing.assert_array_equal(dist[a], d)  # the same float64 distances, inf beyond the reach
-        np.testing.assert_array_equal(near[a], np.where(np.isfinite(d), i, 0))
-    assert np.isfinite(dist).mean() > 0.2 and np.isinf(dist).mean() > 0.2  # both cases are exercised
-    self_contact.warm_up()  # a worker's start-up compiles the signature a request uses
+        # found: the nearest of all, or none within the reach (the step's kernel drops those beyond it)
+        within = found[a] & (np.linalg.norm(arm[a].astype(np.float64) - torso[t, near[a]], axis=1) < 0.05)
+        np.testing.assert_array_equal(within, np.isfinite(d))
+        np.testing.assert_array_equal(near[a][within], i[within])
+    assert found.mean() > 0.2 and (~found).mean() > 0.2  # both cases are exercised
+    self_contact.warm_up()  # a worker's start-up compiles the signatures a request uses
     assert numba.typeof(torso) in [sig[0] for sig in frame_knn.signatures]
+    assert numba.typeof(torso) in [sig[0] for sig in arm_steps.signatures]
+
+
+def _steps_numpy(tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m):
+    """The arm step of the module doc in numpy, from a KD-tree per frame (the compiled one's reference)."""
+    from scipy.spatial import cKDTree
+
+    from inference.motion.self_contact import _STEP_CAP
+
+    step, axes = np.zeros(T), np.zeros((T, 3))
+    dist = np.stack([cKDTree(tp[t]).query(a, k=1, distance_upper_bound=reach_m)[0] for t, a in zip(active, ap)])
+    near = np.stack([cKDTree(tp[t]).query(a, k=1, distance_upper_bound=reach_m)[1] for t, a in zip(active, ap)])
+    ok = np.isfinite(dist)
+    near = np.where(ok, near, 0)
+    c, n = tp[active[:, None], near], tn[active[:, None], near]
+    depth = -np.einsum("tic,tic->ti", ap - c, n)
+    depth = np.where(ok & (np.where(ok, dist, 0.0) ** 2 - depth**2 < tangent_m**2), depth, 0.0)
+    dirn = np.einsum("ti,tic->tc", np.maximum(depth, 0.0), n)
+    dirn /= np.maximum(np.linalg.norm(dirn, axis=-1, keepdims=True), 1e-12)
+    k = np.cross(ap[np.arange(len(active)), np.argmax(depth, axis=1)] - shoulder, dirn)
+    lever = np.linalg.norm(k, axis=-1)
+    need = (depth.max(axis=1) > 0) & (lever > 1e-3)
+    step[active[need]] = np.minimum((depth.max(axis=1)[need] + margin_m) / lever[need], _STEP_CAP)
+    axes[active[need]] = k[need] / lever[need, None]
+    return step, axes
+
+
+def test_compiled_arm_step_is_the_numpy_one(body):
+    from inference.body import linear_blend_skinning
+    from inference.motion import self_contact
+
+    # a heavy body's walk: real torso normals and arms sunk into the torso, every frame and both arms
+    shape, rot, trans = _motion(body, HEAVY, 24)
+    lifter = self_contact.ArmLifter(body, shape)
+    W, transforms = body.pose(shape.rest_bone_poses, rot[None], trans[None])
+    tp, tn = self_contact._skin(body, lifter.torso, lifter.rest, lifter.rest_normals, transforms[0])
+    active = np.arange(0, 24, 2)
+    stepped = 0
+    for bone, arm in lifter.arms:
+        ap = linear_blend_skinning(lifter.rest[None, arm], body.dense_weights[arm], transforms[:, active])[0]
+        args = (tp, tn, ap, W[0, active, bone, :3, 3], active, 24, 0.01, 0.08, 0.015)
+        step, axes = self_contact._steps(*args)
+        ref_step, ref_axes = _steps_numpy(*args)
+        np.testing.assert_allclose(step, ref_step, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(axes, ref_axes, rtol=1e-5, atol=1e-6)
+        assert not step[1::2].any()  # only the active frames
+        stepped += int((step > 0).sum())
+    assert stepped >= 12  # the heavy body's arms need lifting in most of these frames

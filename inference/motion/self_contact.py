@@ -30,10 +30,13 @@ abduction mean / max: neutral 2.9° / 14.3°, heaviest 15.7° / 34.4°, lightest
 Points: the torso and arm skin vertices thinned to one per ``TORSO_VOXEL_M`` / ``ARM_VOXEL_M``
 cell in the rest pose; normals are the rest normals rotated by the blended skinning transform.
 Each arm point's nearest torso point comes from a grid of the frame's torso points
-(``inference.repair_kernels.frame_knn``, the answers of a KD-tree per frame). Cost (one thread,
-30-frame windows of the ``dance`` clip, three bodies): 0.24-0.28 ms per frame (0.57-0.66 with a
-KD-tree per frame), 0.57-0.66 for a 1-frame request, plus ~11 ms of per-body set-up
-(``ArmLifter``, cached per body shape by ``arm_lifter``).
+(``inference.repair_kernels.frame_knn``, the answers of a KD-tree per frame); the depths, the
+direction and the step are one compiled pass (``inference.motion.arm_kernels``). Cost (one thread,
+30-frame windows of the ``dance`` clip, three bodies, session 39's machine): 0.24-0.28 ms per frame
+(0.57-0.66 with a KD-tree per frame), 0.57-0.66 for a 1-frame request, plus ~11 ms of per-body
+set-up (``ArmLifter``, cached per body shape by ``arm_lifter``). On session 43's slower machine,
+the service's requests (default body, ``dance``): 0.72 ms a frame of 30, 2.4 ms for 1 frame, of
+which the nearest torso points take 0.42 ms a frame.
 Units: metres, radians.
 """
 from __future__ import annotations
@@ -46,6 +49,7 @@ import numpy as np
 
 from inference.body import BodyModel, BodyShape, linear_blend_skinning, skin_points_and_normals
 from inference.mesh import vertex_normals
+from inference.motion.arm_kernels import arm_steps
 from inference.repair_kernels import frame_knn
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -208,44 +212,36 @@ def arm_lifter(body: BodyModel, shape: BodyShape) -> ArmLifter:
 
 
 def _nearest_torso(tp: np.ndarray, ap: np.ndarray, active: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The nearest torso point of each arm point in its own frame, where one is nearer than
-    ``reach_m``: distances (A, n) float64 (inf where none) and indices (A, n) into tp's points (0
-    where none), for the arm points ``ap`` (A, n, 3) of the ``active`` frames (A,) and the torso
-    points tp (T, m, 3) float32. A grid per frame of the torso points near its arm points, cells of
-    the reach (``inference.repair_kernels.frame_knn``, exact): the answers of a KD-tree of each
-    frame's torso points with ``distance_upper_bound``, without building one per frame."""
+    """The nearest torso point of each arm point in its own frame, searched within ``reach_m``:
+    indices (A * n,) into tp's points (0 where none) and whether one was found (A * n,) bool, for
+    the arm points ``ap`` (A, n, 3) of the ``active`` frames (A,) and the torso points tp (T, m, 3)
+    float32. A grid per frame of the torso points near its arm points, cells of the reach
+    (``inference.repair_kernels.frame_knn``, exact): the answers of a KD-tree of each frame's torso
+    points with ``distance_upper_bound``, without building one per frame; the kernel of ``_steps``
+    drops those at the reach or beyond."""
     A, n = ap.shape[:2]
     q = np.ascontiguousarray(ap.reshape(-1, 3), np.float64)  # float32 points, exactly
-    frames = np.asarray(active, np.int64)
     # boxed and searched a micrometre past the reach, cells a little wider (the 27 around a point's own
     # cover it): a point not found has no torso point within the reach
-    nn, found = frame_knn(np.ascontiguousarray(tp, np.float32), frames, np.arange(A + 1, dtype=np.int64) * n, q,
+    nn, found = frame_knn(np.ascontiguousarray(tp, np.float32), np.asarray(active, np.int64), np.arange(A + 1, dtype=np.int64) * n, q,
                           np.arange(tp.shape[1], dtype=np.int64), 1, reach_m + 1e-6, reach_m + 2e-6, reach_m + 1e-6)
-    near = np.where(found, nn[:, 0], 0)
-    d = np.sqrt(((q - tp[np.repeat(frames, n), near].astype(np.float64)) ** 2).sum(-1))  # cKDTree's float64 sum
-    ok = found & (d < reach_m)
-    return np.where(ok, d, np.inf).reshape(A, n), np.where(ok, near, 0).reshape(A, n)
+    return np.where(found, nn[:, 0], 0), found
 
 
 def _steps(tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tuple[np.ndarray, np.ndarray]:
     """One abduction step per frame (module docstring): angle (T,) radians (0 where the arm is
     clear) and unit axis (T, 3), for the arm points ``ap`` (A, n, 3) of the ``active`` frames
-    (A,), their shoulder joints (A, 3) and the torso points/normals tp, tn (T, m, 3)."""
+    (A,), their shoulder joints (A, 3) and the torso points/normals tp, tn (T, m, 3). Per frame:
+    depth = -(a - c) . n where the arm point a lies within the reach of its nearest torso point c
+    and projects near it (|a - c|^2 - depth^2 < tangent_m^2), else 0; the direction d is the sum of
+    the positive depths times their normals, normalised; the lever k = (a* - s) x d at the deepest
+    arm point a*; step = min((max depth + margin) / |k|, _STEP_CAP) where the max depth > 0 and
+    |k| > 1 mm. Compiled (``arm_kernels.arm_steps``, the same float32 and float64 operations as the
+    numpy form it replaced, bitwise; 0.36 -> 0.10 ms a frame of the service's 30-frame requests)."""
     step, axes = np.zeros(T), np.zeros((T, 3))
-    dist, near = _nearest_torso(tp, ap, active, reach_m)
-    ok = np.isfinite(dist)
-    c, n = tp[active[:, None], near], tn[active[:, None], near]  # (A, n, 3)
-    depth = -np.einsum("tic,tic->ti", ap - c, n)
-    # the tangent plane judges only points that project near c (not across a crease)
-    depth = np.where(ok & (np.where(ok, dist, 0.0) ** 2 - depth**2 < tangent_m**2), depth, 0.0)
-    dirn = np.einsum("ti,tic->tc", np.maximum(depth, 0.0), n)
-    dirn /= np.maximum(np.linalg.norm(dirn, axis=-1, keepdims=True), 1e-12)
-    deepest = np.argmax(depth, axis=1)
-    k = np.cross(ap[np.arange(len(active)), deepest] - shoulder, dirn)
-    lever = np.linalg.norm(k, axis=-1)
-    need = (depth.max(axis=1) > 0) & (lever > 1e-3)
-    step[active[need]] = np.minimum((depth.max(axis=1)[need] + margin_m) / lever[need], _STEP_CAP)
-    axes[active[need]] = k[need] / lever[need, None]
+    near, found = _nearest_torso(tp, ap, active, reach_m)
+    arm_steps(tp, tn, np.ascontiguousarray(ap, np.float32), np.ascontiguousarray(shoulder, np.float32), np.asarray(active, np.int64),
+              near, found, margin_m, reach_m, tangent_m, _STEP_CAP, step, axes)
     return step, axes
 
 
@@ -273,7 +269,7 @@ def _rotate_bone(body: BodyModel, shape: BodyShape, W: np.ndarray, rot: np.ndarr
 
 
 def warm_up() -> None:
-    """Compile the nearest-torso search (or load numba's cache) for a request's float32 points, so
-    that no request pays a first compilation."""
+    """Compile the nearest-torso search and the step (or load numba's cache) for a request's float32
+    points, so that no request pays a first compilation."""
     pts = np.zeros((1, 2, 3), np.float32)
-    _nearest_torso(pts, pts, np.zeros(1, np.int64), DEFAULT_REACH_M)
+    _steps(pts, pts, pts, pts[0, :1], np.zeros(1, np.int64), 1, DEFAULT_MARGIN_M, DEFAULT_REACH_M, DEFAULT_TANGENT_M)

@@ -1,0 +1,72 @@
+"""Compiled kernel of the arm lift (``inference.motion.self_contact``): one abduction step per
+frame from the arm points' nearest torso points (numba, no Python objects, one thread).
+
+Units: metres, radians. Arrays: float32 points and normals, int64 ids.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_JIT = {"nogil": True, "cache": True, "fastmath": False}
+
+
+@numba.njit(**_JIT)
+def arm_steps(tp, tn, ap, shoulder, active, near, found, margin_m, reach_m, tangent_m, cap, step, axes):
+    """The step of ``self_contact._steps`` (module doc there) for the active frames, written into
+    step (T,) float64 and axes (T, 3) float64 (left as they are where the arm is clear).
+
+    tp, tn   : (T, m, 3) float32, the torso points and their unit normals
+    ap       : (A, n, 3) float32, the arm points of the active frames (A,) int64
+    shoulder : (A, 3) float32, the shoulder joint of each active frame
+    near     : (A * n,) int64, each arm point's nearest torso point (its row in tp), where found
+               (A * n,) bool (``repair_kernels.frame_knn`` within the reach)
+
+    In the order and precision of the numpy expressions it replaces: the distance in float64 from
+    the float32 coordinates, the depth, the direction, the lever and the step in float32.
+    """
+    A, n = ap.shape[0], ap.shape[1]
+    zero = np.float32(0.0)
+    tiny = np.float32(1e-12)
+    margin = np.float32(margin_m)
+    for r in range(A):
+        t = active[r]
+        d0 = d1 = d2 = zero  # the depth-weighted sum of the normals (the direction)
+        best = zero  # the largest depth, at the arm point ``deepest`` (the first of equal ones)
+        deepest = 0
+        for i in range(n):
+            s = r * n + i
+            depth = zero
+            if found[s]:
+                c = near[s]
+                e0 = np.float64(ap[r, i, 0]) - np.float64(tp[t, c, 0])
+                e1 = np.float64(ap[r, i, 1]) - np.float64(tp[t, c, 1])
+                e2 = np.float64(ap[r, i, 2]) - np.float64(tp[t, c, 2])
+                dist = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                if dist < reach_m:
+                    a0, a1, a2 = ap[r, i, 0] - tp[t, c, 0], ap[r, i, 1] - tp[t, c, 1], ap[r, i, 2] - tp[t, c, 2]
+                    h = -(a0 * tn[t, c, 0] + a1 * tn[t, c, 1] + a2 * tn[t, c, 2])
+                    # the tangent plane judges only points that project near c (not across a crease)
+                    if dist * dist - np.float64(h * h) < tangent_m * tangent_m:
+                        depth = h
+            if depth > zero:
+                d0 += depth * tn[t, near[s], 0]
+                d1 += depth * tn[t, near[s], 1]
+                d2 += depth * tn[t, near[s], 2]
+            if i == 0 or depth > best:
+                best = depth
+                deepest = i
+        if not best > zero:
+            continue
+        length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        length = max(length, tiny)
+        d0, d1, d2 = d0 / length, d1 / length, d2 / length
+        l0 = ap[r, deepest, 0] - shoulder[r, 0]
+        l1 = ap[r, deepest, 1] - shoulder[r, 1]
+        l2 = ap[r, deepest, 2] - shoulder[r, 2]
+        k0, k1, k2 = l1 * d2 - l2 * d1, l2 * d0 - l0 * d2, l0 * d1 - l1 * d0
+        lever = np.sqrt(k0 * k0 + k1 * k1 + k2 * k2)
+        if not lever > np.float32(1e-3):
+            continue
+        step[t] = min((best + margin) / lever, np.float32(cap))
+        axes[t, 0], axes[t, 1], axes[t, 2] = k0 / lever, k1 / lever, k2 / lever
