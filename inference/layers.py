@@ -65,6 +65,7 @@ from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings, fi
 from inference.mesh import content_key, faces_touching, per_array
 from inference.nearness import near, nearest
 from inference.winding import check_faces
+from inference.winding_kernels import median_edge
 
 # How far past an outer vertex, along its anchor ray, an inner layer is looked for (module doc, (a)).
 SINK_REACH_M = 0.02
@@ -165,8 +166,8 @@ class LayerFrames:
         faces = np.asarray(faces)
         self.faces = np.ascontiguousarray(check_faces(faces, verts.shape[1]) if len(faces) else np.zeros((0, 3), np.int64))
         self.verts = np.ascontiguousarray(verts, np.float64)
-        edge = np.linalg.norm(self.verts[0, self.faces[:, 1]] - self.verts[0, self.faces[:, 0]], axis=1) if len(self.faces) else np.ones(1)
-        self.cell = CELL_EDGES * max(float(np.median(edge)), 1e-6)
+        edge = median_edge(self.verts[0], self.faces, 1) if len(self.faces) else 1.0  # compiled: numpy's median, bitwise
+        self.cell = CELL_EDGES * max(float(edge), 1e-6)
         self._grids: dict[int, tuple] = {}
 
     def grid(self, t: int) -> tuple:

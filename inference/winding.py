@@ -152,11 +152,9 @@ class WindingGrid:
 
         # grid over each frame's projected mesh (its own origin), cell CELL_EDGES median edges (of
         # every EDGE_SAMPLE-th face's first edge, frame 0)
-        edge = verts[0, faces[::EDGE_SAMPLE, 1]].astype(np.float64) - verts[0, faces[::EDGE_SAMPLE, 0]]
-        self.h = h = CELL_EDGES * max(float(np.median(np.linalg.norm(edge, axis=1))), 1e-6)
-        planes = [c.reshape(B, V, 3)[:, used] if len(used) < V else c.reshape(B, V, 3) for c in self.coords]
-        lo = np.stack([np.min([a[..., 0].min(1) for a in planes], 0), np.min([a[..., 1].min(1) for a in planes], 0)], -1)  # (B, 2)
-        hi = np.stack([np.max([a[..., 0].max(1) for a in planes], 0), np.max([a[..., 1].max(1) for a in planes], 0)], -1)
+        self.h = h = CELL_EDGES * max(float(kernels.median_edge(verts[0], faces, EDGE_SAMPLE)), 1e-6)
+        lo, hi = np.empty((B, 2)), np.empty((B, 2))  # each frame's (u, v) box of the used vertices, both sets
+        kernels.uv_bounds(self.coords[0], X2, used, B, V, lo, hi)
         self.bounded = region is not None
         if region is None:
             self.region = np.tile([-np.inf, np.inf, -np.inf, np.inf], (B, 1))
@@ -323,4 +321,5 @@ def warm_up() -> None:
     tet = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]], np.float64)
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     WindingGrid(tet, faces).count(np.full((1, 1, 3), 0.1))
+    WindingGrid(tet.astype(np.float32), faces)  # a request's float32 vertices (the cell's median edge)
     inflated(tet, faces, 0.0)

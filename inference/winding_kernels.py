@@ -45,6 +45,37 @@ UNKNOWN = -(2**30)
 
 
 @numba.njit(**_JIT)
+def median_edge(verts, faces, step):
+    """The median length of the first edge of every ``step``-th face, metres: numpy's
+    ``np.median(np.linalg.norm(verts[faces[::step, 1]] - verts[faces[::step, 0]], axis=1))`` in
+    float64, bitwise (the grid's cell; ~0.3 ms of fancy indexing in numpy for the body's 3,428).
+    verts (V, 3) float32 or float64; faces (F, 3) int64."""
+    n = (faces.shape[0] + step - 1) // step
+    e = np.empty(max(n, 1))
+    e[0] = 0.0
+    for r in range(n):
+        a, b = faces[r * step, 0], faces[r * step, 1]
+        d0 = np.float64(verts[b, 0]) - np.float64(verts[a, 0])
+        d1 = np.float64(verts[b, 1]) - np.float64(verts[a, 1])
+        d2 = np.float64(verts[b, 2]) - np.float64(verts[a, 2])
+        e[r] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return np.median(e)
+
+
+@numba.njit(**_JIT)
+def uv_bounds(X, X2, used, B, V, lo, hi):
+    """Per frame b, the (u, v) box of the vertices ``used`` (int64 ids) over both vertex sets X,
+    X2 ((B*V, 3) rows (u, v, y)): lo (B, 2), hi (B, 2), written."""
+    for b in range(B):
+        u0, u1, v0, v1 = np.inf, -np.inf, np.inf, -np.inf
+        for k in range(used.shape[0]):
+            a = b * V + used[k]
+            u0, u1 = min(u0, X[a, 0], X2[a, 0]), max(u1, X[a, 0], X2[a, 0])
+            v0, v1 = min(v0, X[a, 1], X2[a, 1]), max(v1, X[a, 1], X2[a, 1])
+        lo[b, 0], lo[b, 1], hi[b, 0], hi[b, 1] = u0, v0, u1, v1
+
+
+@numba.njit(**_JIT)
 def _outside_codes(X, X2, base, V, r0, r1, r2, r3, code):
     """code[v] (V,) uint8 of frame vertex base + v: bit 1 where its u is below r0 in both vertex
     sets, 2 above r1, 4 its v below r2, 8 above r3. A face's box (over both sets) misses the

@@ -205,6 +205,27 @@ def test_a_grid_over_a_region_bins_fewer_faces_and_answers_every_point():
         WindingGrid(big, f, region=region[:1])
 
 
+def test_the_grids_cell_and_box_are_numpys():
+    """The compiled median edge and (u, v) box equal the numpy expressions they replace, bitwise
+    (the grid's bins depend on both), on odd and even sample counts and with unused vertices."""
+    from inference import winding_kernels as kernels
+    from inference.winding import CELL_EDGES, EDGE_SAMPLE
+
+    v, f = _two_spheres()
+    rng = np.random.default_rng(11)
+    frames = (np.stack([v, v * 1.3 + 0.2]) + rng.normal(0.0, 0.01, (2,) + v.shape)).astype(np.float32)
+    frames = np.concatenate([frames, np.full((2, 1, 3), 50.0, np.float32)], 1)  # a vertex no face uses
+    for step in (1, 7, EDGE_SAMPLE):
+        edge = frames[0, f[::step, 1]].astype(np.float64) - frames[0, f[::step, 0]]
+        assert kernels.median_edge(frames[0], f.astype(np.int64), step) == np.median(np.linalg.norm(edge, axis=1))
+    grid = WindingGrid(frames, f, second=frames - np.float32(0.05))
+    edge = frames[0, f[::EDGE_SAMPLE, 1]].astype(np.float64) - frames[0, f[::EDGE_SAMPLE, 0]]
+    assert grid.h == CELL_EDGES * np.median(np.linalg.norm(edge, axis=1))
+    used = np.unique(f)
+    both = np.concatenate([frames[:, used], frames[:, used] - np.float32(0.05)], 1).astype(np.float64)
+    np.testing.assert_array_equal(grid.lo, both[..., [0, 2]].min(1))  # (u, v) = (x, z); not the far vertex
+
+
 def test_rays_down_y_count_the_same_winding_numbers():
     """A closed mesh's winding number is the signed crossings of any ray: -y rays (per point)
     give the +y rays' numbers, in the overlap of the two parts too; ``ray_down`` picks -y where
