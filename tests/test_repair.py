@@ -119,6 +119,42 @@ def test_the_first_outside_target_is_the_nearest_outside_one():
     assert grid._whole  # some targets lay beyond the region
 
 
+def test_an_accepted_target_deep_in_the_list_is_the_nearest_accepted_outside_one():
+    """With an outer layer to respect (``accept``), the final stage takes each point's nearest
+    target that is outside and accepted, however far down its list (rounds growing from ROUND)."""
+    from inference.repair import _move_outside
+
+    v, f = _two_spheres()
+    frames = np.stack([v, v + [0.0, 0.0, 3.0]]).astype(np.float32)
+    grid = WindingGrid(frames, f)
+    rng = np.random.default_rng(21)
+    n, k = 300, 200
+    frame = rng.integers(0, 2, n)
+    Pb = (rng.uniform(-1.0, 1.0, (2, n, 3))).astype(np.float32)
+    Pb[1] += np.float32([0.0, 0.0, 3.0])
+    idx = np.arange(n)
+    points = Pb[frame, idx]
+    targets = (points[:, None] + rng.normal(0.0, 0.8, (n, k, 3))).astype(np.float32)
+    rank = np.argsort(np.argsort(np.linalg.norm(targets - points[:, None], axis=-1), axis=1, kind="stable"), axis=1)
+    deep = rng.integers(0, k, n)  # per point, only its targets from this rank on are accepted
+    deep[:10] = k  # none accepted
+
+    def accept(fr, ix, t):
+        j = np.argmax(np.all(targets[ix] == t[:, None], axis=-1), axis=1)  # the column of each tried target
+        return rank[ix, j] >= deep[ix]
+
+    free = grid.count_at(targets.reshape(-1, 3), np.repeat(frame, k), "first",
+                         (targets[..., 1] < points[:, None, 1]).ravel()).reshape(n, k) == 0
+    ok_cols = free & (rank >= deep[:, None])
+    want = np.where(ok_cols.any(1), np.argmin(np.where(ok_cols, rank, k), axis=1), -1)
+    got = _move_outside(Pb, grid, "first", frame, idx, targets, accept)
+    np.testing.assert_array_equal(got, want >= 0)
+    moved = np.flatnonzero(want >= 0)
+    np.testing.assert_array_equal(Pb[frame[moved], idx[moved]], targets[moved, want[moved]])
+    np.testing.assert_array_equal(Pb[frame[:10], idx[:10]], points[:10])  # no accepted target: left where it was
+    assert (deep[moved] > 100).sum() > 50  # many found theirs past the first 100 candidates
+
+
 def test_points_inside_the_overlap_or_a_part_end_outside_and_others_stay():
     v, f = _two_spheres()
     # inside both parts (the lens: no target among the nearest 32 is outside), inside one part
