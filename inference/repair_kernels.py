@@ -139,3 +139,52 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
                     break  # every vertex within radius read, and the k-th nearest lies beyond it
                 r += 1
     return nn, found
+
+
+@numba.njit(**_JIT)
+def skin_targets(Bb, frame, ids, faces, indptr, face_of, margin_m, points, out):
+    """The final stage's targets (``inference.repair._targets``) on the skin vertices ids (n, k) of
+    points (n, 3) in frames frame (n,) of the block Bb (T, V, 3) (float32 in a request): out
+    (n, 2k, 3) of Bb's type, the plane targets p + (max((c - p) . n_c, -margin) + margin) n_c, then the vertex
+    targets c + margin n_c, with n_c the unit area-weighted normal of c over the faces (F, 3) int64
+    (indptr, face_of: each vertex's faces, ascending, ``inference.mesh._vertex_faces``).
+
+    The operations of the numpy form it replaced, in its order and precision, bitwise: each normal
+    sums its faces' cross products in float64 in ascending face order and is normalised where
+    longer than 1e-20 (``mesh_kernels.normals_at``); the depth and the targets in float64 from
+    coordinates (their difference in their own type), rounded to out's type at the end."""
+    n, k = ids.shape[0], ids.shape[1]
+    for r in range(n):
+        t = frame[r]
+        p0, p1, p2 = np.float64(points[r, 0]), np.float64(points[r, 1]), np.float64(points[r, 2])
+        for j in range(k):
+            v = ids[r, j]
+            s0, s1, s2 = 0.0, 0.0, 0.0
+            for q in range(indptr[v], indptr[v + 1]):
+                f = face_of[q]
+                i0, i1, i2 = faces[f, 0], faces[f, 1], faces[f, 2]
+                ax = np.float64(Bb[t, i1, 0]) - Bb[t, i0, 0]
+                ay = np.float64(Bb[t, i1, 1]) - Bb[t, i0, 1]
+                az = np.float64(Bb[t, i1, 2]) - Bb[t, i0, 2]
+                bx = np.float64(Bb[t, i2, 0]) - Bb[t, i0, 0]
+                by = np.float64(Bb[t, i2, 1]) - Bb[t, i0, 1]
+                bz = np.float64(Bb[t, i2, 2]) - Bb[t, i0, 2]
+                s0 += ay * bz - az * by
+                s1 += az * bx - ax * bz
+                s2 += ax * by - ay * bx
+            length = (s0 ** 2 + s1 ** 2 + s2 ** 2) ** 0.5
+            if length > 1e-20:
+                s0, s1, s2 = s0 / length, s1 / length, s2 / length
+            c0, c1, c2 = np.float64(Bb[t, v, 0]), np.float64(Bb[t, v, 1]), np.float64(Bb[t, v, 2])
+            # c - p in the inputs' type, as numpy subtracts the arrays before the float64 product
+            d0 = np.float64(Bb[t, v, 0] - points[r, 0])
+            d1 = np.float64(Bb[t, v, 1] - points[r, 1])
+            d2 = np.float64(Bb[t, v, 2] - points[r, 2])
+            depth = max(d0 * s0 + d1 * s1 + d2 * s2, -margin_m)
+            step = depth + margin_m
+            out[r, j, 0] = p0 + step * s0
+            out[r, j, 1] = p1 + step * s1
+            out[r, j, 2] = p2 + step * s2
+            out[r, k + j, 0] = c0 + margin_m * s0
+            out[r, k + j, 1] = c1 + margin_m * s1
+            out[r, k + j, 2] = c2 + margin_m * s2

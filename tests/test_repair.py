@@ -155,6 +155,38 @@ def test_an_accepted_target_deep_in_the_list_is_the_nearest_accepted_outside_one
     assert (deep[moved] > 100).sum() > 50  # many found theirs past the first 100 candidates
 
 
+def test_the_compiled_targets_are_the_numpy_ones():
+    """The final stage's plane and vertex targets (compiled) equal the numpy form of the module
+    doc bitwise for float32 input (every request's): unit area-weighted normals of the skin
+    vertices over their faces, depth clamped at -margin."""
+    from inference import mesh_kernels
+    from inference.mesh import faces_around
+    from inference.repair import _targets
+
+    v, f = _two_spheres()
+    rng = np.random.default_rng(4)
+    Bb = (np.stack([v, v * 1.1]) + rng.normal(0.0, 0.005, (2,) + v.shape)).astype(np.float32)
+    n, k = 500, 8
+    frame = rng.integers(0, 2, n)
+    ids = rng.integers(0, len(v), (n, k))
+    points = (Bb[frame, ids[:, 0]] + rng.normal(0.0, 0.05, (n, 3))).astype(np.float32)
+    faces = f.astype(np.int32)  # the body model's
+    frames, fpos = np.unique(frame, return_inverse=True)
+    verts, vpos = np.unique(ids, return_inverse=True)
+    slot = np.full(len(v), -1, np.int64)
+    slot[verts] = np.arange(len(verts))
+    normals = np.empty((len(frames), len(verts), 3))
+    mesh_kernels.normals_at(Bb[frames], faces, faces_around(faces, verts, len(v)), slot, normals)
+    c, nc = Bb[frame[:, None], ids], normals[fpos[:, None], vpos.reshape(ids.shape)]
+    p = points[:, None, :]
+    depth = np.maximum(np.einsum("nkc,nkc->nk", c - p, nc), -0.004)
+    want = np.concatenate([p + (depth + 0.004)[..., None] * nc, c + 0.004 * nc], axis=1).astype(np.float32)
+    got = _targets(Bb, frame, ids, faces, 0.004, points)
+    assert got.dtype == np.float32 and got.shape == (n, 2 * k, 3)
+    np.testing.assert_array_equal(got, want)
+    assert (depth == -0.004).any() and (depth > 0).any()  # both sides of the tangent planes
+
+
 def test_points_inside_the_overlap_or_a_part_end_outside_and_others_stay():
     v, f = _two_spheres()
     # inside both parts (the lens: no target among the nearest 32 is outside), inside one part
