@@ -67,7 +67,8 @@ the garments' region (REGION_M; ~0.8 ms, once per block of frames, shared by the
 inflated copy ~0.2 ms), the count at the garment's 5,148 vertices (~1.1 ms), and for the points
 within the clearance their nearest skin vertices (a grid per frame, ~0.4 ms), their targets
 (~0.5 ms) and the count at them (~0.7 ms): ~4.2 ms in all (bench tables in docs/benchmarks.md;
-session 42's machine, ~1.5x slower: the grid 1.1, the count 1.1, ~4.0 ms in all).
+session 42's machine, ~1.5x slower: the grid 1.1, the count 1.1, ~4.0 ms in all; the targets are
+one compiled pass since session 43, ``repair_kernels.skin_targets``, ~0.1 ms a frame).
 
 Units: metres. Arrays: float32, batch axis first.
 """
