@@ -237,7 +237,8 @@ def _steps(tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tup
     the positive depths times their normals, normalised; the lever k = (a* - s) x d at the deepest
     arm point a*; step = min((max depth + margin) / |k|, _STEP_CAP) where the max depth > 0 and
     |k| > 1 mm. Compiled (``arm_kernels.arm_steps``, the same float32 and float64 operations as the
-    numpy form it replaced, bitwise; 0.36 -> 0.10 ms a frame of the service's 30-frame requests)."""
+    numpy form it replaced, bitwise: the service's 30-frame requests 0.64 -> 0.46 ms a frame, of
+    which the nearest torso points take 0.42)."""
     step, axes = np.zeros(T), np.zeros((T, 3))
     near, found = _nearest_torso(tp, ap, active, reach_m)
     arm_steps(tp, tn, np.ascontiguousarray(ap, np.float32), np.ascontiguousarray(shoulder, np.float32), np.asarray(active, np.int64),
