@@ -127,9 +127,10 @@ BAND_MOVE_M = 0.003
 REGION_M = 0.03
 # Targets tested per point in the first round, nearest first, where an outer layer must accept
 # them (an inner layer's points; the others take ``WindingGrid.first_outside``, one at a time,
-# compiled); each further round tests twice as many as the one before. In rounds of 4 throughout, a
-# point deep under both layers walked its 512 far candidates in up to 128 rounds of two calls each:
-# the slowest 1-frame T-shirt + jacket requests spent 50-80 ms in this stage, where most take 10.
+# compiled); each further round tests twice as many as the one before, so that a point deep under
+# both layers, with no accepted target among its 8 or 32 nearest, walks its 512 far candidates in at
+# most 8 rounds of two calls each, not 128 (the slowest 1-frame T-shirt + jacket requests: ~30 ms in
+# this stage, against 60-106 in rounds of 4; most take 10).
 ROUND = 4
 # A point this stage moves farther than HOLD_FROM_M in two consecutive frames of a motion, the
 # second time against the first (to the other side of a limb), keeps the first side where a
@@ -450,7 +451,7 @@ def _targets(Bb, frame, ids, skin_faces, margin_m, points) -> np.ndarray:
     vertex's area-weighted normal over its faces in its frame. Compiled
     (``repair_kernels.skin_targets``; bitwise the numpy form it replaced: the normals of the
     vertices used by ``mesh_kernels.normals_at`` over ``faces_around`` them, then the targets in
-    float64; a 1-frame T-shirt request's 0.8 -> 0.2 ms)."""
+    float64; a 1-frame T-shirt request's 0.8 -> 0.15 ms)."""
     indptr, face_of = _vertex_faces(skin_faces, Bb.shape[1])
     out = np.empty((len(frame), 2 * ids.shape[1], 3), Bb.dtype)
     kernels.skin_targets(np.ascontiguousarray(Bb), np.ascontiguousarray(frame, np.int64), np.ascontiguousarray(ids, np.int64),

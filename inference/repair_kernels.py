@@ -180,6 +180,7 @@ def skin_targets(Bb, frame, ids, faces, indptr, face_of, margin_m, points, out):
             d0 = np.float64(Bb[t, v, 0] - points[r, 0])
             d1 = np.float64(Bb[t, v, 1] - points[r, 1])
             d2 = np.float64(Bb[t, v, 2] - points[r, 2])
+            # never inward: a point already above c's plane moves out to the margin, no farther
             depth = max(d0 * s0 + d1 * s1 + d2 * s2, -margin_m)
             step = depth + margin_m
             out[r, j, 0] = p0 + step * s0
