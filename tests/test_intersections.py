@@ -74,3 +74,20 @@ def test_self_intersecting_faces_are_where_a_mesh_passes_through_itself():
     # along the circle where the two surfaces meet: near both (an edge is ~0.3 long here)
     assert np.abs(np.linalg.norm(centres, axis=1) - 1.0).max() < 0.2
     assert np.abs(np.linalg.norm(centres - (0.3, 0.1, 0.05), axis=1) - 0.9).max() < 0.2
+
+
+def test_the_box_pre_test_is_the_six_comparisons():
+    """``_apart`` (one max of six differences, no branch) says what the short-circuit comparisons
+    lo_b > hi or hi_b < lo on each axis say, touching boxes (a shared coordinate) included."""
+    from inference.intersections import _apart
+
+    rng = np.random.default_rng(3)
+    grid = np.round(rng.uniform(-1, 1, (4000, 12)), 1)  # coarse values: many equal coordinates
+    lo_b, hi_b = np.minimum(grid[:, :3], grid[:, 3:6]), np.maximum(grid[:, :3], grid[:, 3:6])
+    lo, hi = np.minimum(grid[:, 6:9], grid[:, 9:]), np.maximum(grid[:, 6:9], grid[:, 9:])
+    lo[::7] = np.nextafter(hi_b[::7], np.inf)  # just past: apart by one ulp on every axis
+    boxes = np.concatenate([lo_b, hi_b], 1)
+    got = np.array([_apart(boxes, f, *lo[f], *hi[f]) for f in range(len(boxes))])
+    want = ((lo_b > hi) | (hi_b < lo)).any(1)
+    assert want.any() and (~want).any() and ((lo == hi_b) & ~want[:, None]).any()
+    assert np.array_equal(got, want)
