@@ -97,6 +97,25 @@ def test_per_frame_nearest_of_a_region_smaller_than_k_marks_the_missing():
     np.testing.assert_array_equal(found[0], [[1, 0, -1], [0, 1, -1]])
 
 
+def test_the_answers_become_flat_candidate_ids_as_numpy_writes_them():
+    # ``flat_candidates`` against the numpy form it replaces: the dynamic points' columns of
+    # frame-major flat ids, a missing answer (-1) included, every other column left alone
+    from inference.guard import nearest
+
+    rng = np.random.default_rng(4)
+    F, Nd, k, N, S, f0 = 3, 40, 3, 70, 500, 5
+    region = rng.choice(S, 120, replace=False)
+    found = rng.integers(0, len(region), (F, Nd, k))
+    found[0, 3, 2] = -1
+    dyn = np.sort(rng.choice(N, Nd, replace=False))
+    want = rng.integers(0, 10**6, (k, F * N))
+    got = want.copy()
+    for i in range(F):
+        want[:, i * N + dyn] = (f0 + i) * S + region[found[i]].T
+    nearest.flat_candidates(found, region, dyn, N, f0, S, got)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_the_warm_up_compiles_the_per_frame_search_for_the_guards_coordinates():
     # a worker warms the kernel at start-up (service.runtime); a signature it missed would compile
     # (~1 s) inside the first outfit's request: the guard's planes are float32

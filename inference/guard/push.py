@@ -317,6 +317,5 @@ def _dynamic_candidates(Pb: np.ndarray, C: np.ndarray, flat: np.ndarray, plan: G
     extra = np.repeat(flat[:1], k, axis=0)
     found = nearest.frames_knn(C3, np.ascontiguousarray(region, np.int64), np.ascontiguousarray(Pb, np.float64),
                                np.ascontiguousarray(dyn, np.int64), N, f0, f1, k, nearest.CELL_M, nearest.COLD_RHO_M, prev)
-    for i, f in enumerate(range(f0, f1)):  # (F, Nd, k) positions in the region
-        extra[:, i * N + dyn] = f * S + region[found[i]].T
+    nearest.flat_candidates(found, np.ascontiguousarray(region, np.int64), np.ascontiguousarray(dyn, np.int64), N, f0, S, extra)
     return extra
