@@ -33,7 +33,7 @@ from training.protocol import BODIES, clip_motion, load_clip  # noqa: E402
 
 # What cProfile's functions are reported as.
 PARTS = {"_bin_faces": "binning a layer's faces (per frame and layer)", "binned_crossings": "crossing queries",
-         "_spread": "spreading the sinks", "_smooth_rays": "smoothing the directions", "anchor_normals": "body normals at the anchors"}
+         "spread": "spreading the sinks", "sink_along_rays": "smoothing the directions and sinking", "anchor_normals": "body normals at the anchors"}
 
 
 def capture(outfit: list[str], frames: int) -> tuple[tuple, dict]:

@@ -59,7 +59,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from inference import mesh_kernels
+from inference import layers_kernels, mesh_kernels
 from inference.errors import InputShapeError
 from inference.intersections import CELL_EDGES, _bin_faces, binned_crossings, first_crossings
 from inference.mesh import content_key, faces_touching, per_array
@@ -76,7 +76,7 @@ SPREAD_DECAY = 0.5
 MIN_SINK_COS = 0.2
 # Parts of two layers farther apart than this in their rest forms are not tested against each other.
 CONTACT_M = 0.06
-# One-ring averages of the sinking directions (``_smooth_rays``).
+# One-ring averages of the sinking directions (``layers_kernels.sink_along_rays``).
 RAY_SMOOTHING = 3
 # A vertex nearer its anchor than this lies on the skin (step (c) with an outer layer crossing at
 # the anchor): the final stage moves it out as if it were inside (``inference.repair``).
@@ -223,23 +223,12 @@ class UntangleReport:
 def _spread(sink: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """sink (T, N) spread over the mesh: each vertex takes at least SPREAD_DECAY^k times the sink of
     a vertex k edges away, k <= SPREAD_RINGS (a dent's rim slopes instead of stepping). Only the
-    nonzero entries spread (a few % of the vertex-frames)."""
+    nonzero entries spread (a few % of the vertex-frames; compiled, ``layers_kernels.spread``)."""
     T, N = sink.shape
     src, dst = _neighbours(faces, N)
     start = np.searchsorted(src, np.arange(N + 1))
-    flat = sink.ravel().copy()
-    front = np.flatnonzero(flat)
-    for _ in range(SPREAD_RINGS):
-        frame, v = np.divmod(front, N)
-        deg = start[v + 1] - start[v]
-        rows = np.repeat(np.arange(len(v)), deg)
-        nb = dst[np.repeat(start[v], deg) + (np.arange(deg.sum()) - np.repeat(np.cumsum(deg) - deg, deg))]
-        target = frame[rows] * N + nb
-        value = SPREAD_DECAY * flat[front][rows]
-        grow = value > flat[target]
-        target, value = target[grow], value[grow]
-        np.maximum.at(flat, target, value)
-        front = np.unique(target)
+    flat = np.array(sink, np.float64).ravel()
+    layers_kernels.spread(flat, N, start, dst, SPREAD_DECAY, SPREAD_RINGS)
     return flat.reshape(T, N)
 
 
@@ -262,18 +251,6 @@ def _ring_matrix(faces: np.ndarray, n: int) -> sp.csr_matrix:
     e = np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     A = sp.coo_matrix((np.ones(len(e) * 2), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
     return A + sp.identity(n, format="csr")
-
-
-def _smooth_rays(rays: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit anchor rays (T, N, 3) averaged with their one-ring, RAY_SMOOTHING times: neighbours
-    whose anchors lie on different body parts (under the arm) sink in nearly one direction."""
-    n = rays.shape[1]
-    A = _ring_matrix(faces, n)
-    r = np.moveaxis(rays, 1, 0).reshape(n, -1)  # (N, T * 3)
-    for _ in range(RAY_SMOOTHING):
-        r = A @ r
-    r = np.moveaxis(r.reshape(n, rays.shape[0], 3), 0, 1)
-    return r / np.maximum(np.linalg.norm(r, axis=-1), 1e-12)[..., None]
 
 
 def anchor_normals(body: np.ndarray, body_faces: np.ndarray, anchors: np.ndarray) -> np.ndarray:
@@ -371,11 +348,11 @@ def untangle_layers(
     contacts = contacts or LayerContacts.everywhere(out, faces)
     moved, held, max_move = [0] * len(out), [0] * len(out), 0.0
     for i in range(len(out) - 2, -1, -1):  # outside in: each layer under those already placed
-        p = out[i].astype(np.float64)
+        p = np.ascontiguousarray(out[i], np.float64)  # C order, whatever the stage before left: the kernels' layout
         T, N = p.shape[:2]
-        a = body[:, anchors[i]].astype(np.float64)  # (T, N, 3) posed anchors
-        seg = p - a
-        L = np.linalg.norm(seg, axis=-1)
+        a = np.ascontiguousarray(body[:, anchors[i]], np.float64)  # (T, N, 3) posed anchors
+        seg, L = np.empty_like(p), np.empty((T, N))
+        layers_kernels.anchor_segments(p, a, seg, L)  # seg = p - a, L = |seg|
         sink = np.zeros((T, N))
         t_hit = np.full((T, N), 2.0)
         grids = {}
@@ -402,12 +379,11 @@ def untangle_layers(
         sink = _spread(sink, faces[i])
         hit = sink > 0
         n = anchor_normals(body, body_faces, anchors[i])
-        ray = _smooth_rays(seg / np.maximum(L, 1e-12)[..., None], faces[i])[hit]
-        # no deeper than the floor: the height (p - a) . n over the skin drops by depth * (ray . n)
-        height = (seg[hit] * n[hit]).sum(-1)
-        cos = np.maximum((ray * n[hit]).sum(-1), MIN_SINK_COS)
-        depth = np.minimum(sink[hit], np.maximum(height - floors_m[i], 0.0) / cos)
-        p[hit] -= ray * depth[:, None]
+        # down the anchor rays averaged with their one-ring, RAY_SMOOTHING times, no deeper than the
+        # floor: the height (p - a) . n over the skin drops by depth * (ray . n) (compiled)
+        A = _ring_matrix(faces[i], N)
+        layers_kernels.sink_along_rays(p, seg, L, sink, np.ascontiguousarray(n), A.indptr, A.indices, A.data, RAY_SMOOTHING,
+                                       float(floors_m[i]), MIN_SINK_COS)
         # (c) a moved vertex still beyond an outer layer: back along its own anchor segment, to
         # the gap under it, or (an outer layer within floor + gap of the skin) half-way to it
         frame, idx = np.nonzero(hit)
@@ -441,5 +417,13 @@ def warm_up() -> None:
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     anchor_crossings(np.full((1, 1, 3), 0.1, np.float32), np.full((1, 1, 3), 2.0, np.float32), LayerFrames(tet, faces), exiting=True)
     anchor_normals(tet, faces.astype(np.int32), np.arange(4))
+    # the sinking's kernels, with the layouts a request gives them (float64 frames, scipy's CSR)
+    p = tet.astype(np.float64)
+    seg, L = np.empty_like(p), np.empty(p.shape[:2])
+    layers_kernels.anchor_segments(p, 0.5 * p, seg, L)
+    A = _ring_matrix(faces, 4)
+    layers_kernels.sink_along_rays(p, seg, L, _spread(np.ones((1, 4)), faces), np.ascontiguousarray(seg), A.indptr, A.indices, A.data,
+                                   RAY_SMOOTHING, 0.002, MIN_SINK_COS)
+    _spread(np.ones((1, 4)), faces.astype(np.int32))  # a garment's faces are int32 (its neighbours too)
     # and the final stage's crossings of the faces it moved (``inference.repair._sink_under_moved``)
     first_crossings(np.full((1, 3), 0.1), np.full((1, 3), 2.0), tet[0].astype(np.float64), faces.astype(np.int64), 0.5, False)
