@@ -158,3 +158,44 @@ def test_the_compiled_screen_keeps_the_points_numpy_kept_and_pushes_them_alike(s
         assert 0 < len(live) < P.shape[1]  # the screen drops some points, keeps others
         np.testing.assert_array_equal(kept, live)
         np.testing.assert_array_equal(got, ref)
+
+
+def _numpy_collider_planes(plan, collider):
+    """``GuardPlan.collider_planes`` as numpy computed it (the reference of the compiled pass)."""
+    from inference.guard.push import _planes
+
+    B, T, M, _ = collider.shape
+    BT = B * T
+    C = _planes(collider)
+    frame = (np.arange(BT, dtype=np.intp) * M)[None, :]
+    f = plan.faces[plan.face_ids]
+    corner = [[np.take(C[c], f[:, i, None] + frame) for c in range(3)] for i in range(3)]
+    e1 = [corner[1][c] - corner[0][c] for c in range(3)]
+    e2 = [corner[2][c] - corner[0][c] for c in range(3)]
+    fn = np.stack([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]], axis=1)
+    vn = (plan.incidence @ fn.reshape(len(f), 3 * BT)).reshape(-1, 3, BT)
+    vn *= plan.orientation / np.maximum(np.sqrt(np.einsum("scb,scb->sb", vn, vn)), 1e-20)[:, None]
+    normals = np.ascontiguousarray(vn.transpose(1, 2, 0)).reshape(3, BT * len(plan.collider_ids))
+    points = np.take(C, (frame.T + plan.collider_ids[None]).reshape(-1), axis=1)
+    return points, normals
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_the_collider_planes_are_numpys(flip):
+    # a closed collider (a sphere, normals outward) and the same faces wound inward (orientation
+    # -1), moving over three frames: the compiled planes are the numpy form's, bit for bit
+    import trimesh
+
+    from inference.guard.plan import GuardPlan
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.2)
+    faces = s.faces[:, ::-1] if flip else s.faces
+    rng = np.random.default_rng(5)
+    body = (s.vertices[None] + rng.normal(0, 0.003, (3, len(s.vertices), 3))).astype(np.float32)
+    points = (s.vertices[::7] * 1.05).astype(np.float32)
+    plan = GuardPlan.build(points[None], body[:1], faces)
+    assert plan.orientation == (-1.0 if flip else 1.0)
+    got = plan.collider_planes(body[None])
+    want = _numpy_collider_planes(plan, body[None])
+    assert got[0].dtype == got[1].dtype == np.float32
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

@@ -24,7 +24,8 @@ from inference.guard.constants import (
     DYNAMIC_VOXEL_M,
     _OPPOSING_COS,
 )
-from inference.guard.push import _check_frames, _planes
+from inference.guard import push_kernels
+from inference.guard.push import _check_frames
 from inference.mesh import content_key, major_components, per_array, vertex_face_incidence, vertex_normals
 from inference.nearness import first_per_cell, nearest, within
 
@@ -373,23 +374,15 @@ class GuardPlan:
         B, T, M, _ = collider.shape
         if self.faces.max() >= M:
             raise InputShapeError("collider", f"(B, T, >{self.faces.max()}, 3)", collider.shape)
-        BT = B * T
-        C = _planes(collider)  # (3, BT*M)
-        frame = (np.arange(BT, dtype=np.intp) * M)[None, :]
-        # corner[i][c]: coordinate c of corner i of the plan's faces, (Fs, BT)
-        f = self.faces[self.face_ids]
-        corner = [[np.take(C[c], f[:, i, None] + frame) for c in range(3)] for i in range(3)]
-        e1 = [corner[1][c] - corner[0][c] for c in range(3)]
-        e2 = [corner[2][c] - corner[0][c] for c in range(3)]
-        # area-weighted face normals (v1 - v0) x (v2 - v0), laid out (Fs, 3, BT)
-        fn = np.stack([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]], axis=1)
-        # n[s, c, bt] = sum_f incidence[s, f] fn[f, c, bt]
-        vn = (self.incidence @ fn.reshape(len(f), 3 * BT)).reshape(-1, 3, BT)
-        vn *= self.orientation / np.maximum(np.sqrt(np.einsum("scb,scb->sb", vn, vn)), 1e-20)[:, None]
-        S = len(self.collider_ids)
-        normals = np.ascontiguousarray(vn.transpose(1, 2, 0)).reshape(3, BT * S)
-        points = np.take(C, (frame.T + self.collider_ids[None]).reshape(-1), axis=1)
-        return points, normals.astype(np.float32, copy=False)
+        BT, S = B * T, len(self.collider_ids)
+        points, normals = np.empty((3, BT * S), np.float32), np.empty((3, BT * S), np.float32)
+        # per frame: area-weighted face normals (v1 - v0) x (v2 - v0), summed over each vertex's
+        # faces (the incidence), normalised and oriented outward (compiled, float32 as numpy's)
+        inc = self.incidence
+        push_kernels.collider_planes(np.ascontiguousarray(collider.reshape(BT, M, 3), np.float32), self.faces, self.face_ids, inc.indptr,
+                                     inc.indices, inc.data, self.collider_ids, float(self.orientation), points, normals,
+                                     np.empty((len(self.face_ids), 3), np.float32))
+        return points, normals
 
     def collider_frames(self, collider: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The plan's collider vertices and their area-weighted unit outward normals per frame.
