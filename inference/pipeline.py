@@ -55,7 +55,7 @@ from inference.guard import LayerPlans, guard_layers
 from inference.layers import LayerContacts, body_anchors, body_tree, kept_anchors, untangle_layers
 from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
 from inference.motion.descriptor import motion_descriptor
-from inference.motion.self_contact import lift_arms
+from inference.motion.self_contact import arm_lifter, lift_arms
 from inference.options import DrapeOptions
 from inference.repair import LayerOrder, repair_layers
 
@@ -243,12 +243,13 @@ def drape(
     if any(f != "canonical" for m in methods for f in m.fits):  # the MakeHuman bindings of the other fits (~0.7 ms)
         with timer("shape"):
             hm08 = body.hm08_vertices(shape)
+    posed = None
     if options.lift_arms:
-        with timer("arms"):
-            lifted, _ = lift_arms(body, shape, motion.rotations, motion.translation, segments)
+        with timer("arms"):  # and the lifted motion's poses, which the lift has computed (BodyModel.pose's)
+            lifted, _, *posed = arm_lifter(body, shape).lift(motion.rotations, motion.translation, segments, poses=True)
             motion = PoseSequence(lifted, motion.translation, motion.fps)
     with timer("pose"):
-        bone_poses, transforms = body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
+        bone_poses, transforms = posed or body.pose(shape.rest_bone_poses, motion.rotations[None], motion.translation[None])
     anchors = None
     repaired = None  # each garment's last frame's moves in the final stage
     body_vertices = None  # the posed body, needed by the guard (exporters pose it themselves)

@@ -163,3 +163,32 @@ def test_compiled_arm_step_is_the_numpy_one(body):
         assert not step[1::2].any()  # only the active frames
         stepped += int((step > 0).sum())
     assert stepped >= 12  # the heavy body's arms need lifting in most of these frames
+
+
+def test_the_lifts_poses_are_the_lifted_motions(body):
+    # ``lift(poses=True)``: the bone poses and transforms it kept while re-posing the moved frames
+    # are BodyModel.pose's of the lifted motion, bit for bit (the pipeline poses no more), on a
+    # heavy body whose arms move in some frames and iterations and not in others, two segments
+    from inference.motion.self_contact import arm_lifter
+
+    shape, rot, trans = _motion(body, 0.5 * HEAVY, 30)
+    lifted, angles, W, T = arm_lifter(body, shape).lift(rot, trans, [11, 19], poses=True)
+    assert (angles > 0).any() and (angles == 0).any()
+    W2, T2 = body.pose(shape.rest_bone_poses, lifted[None], trans[None])
+    assert np.array_equal(W, W2) and np.array_equal(T, T2)
+
+
+def test_the_window_maximum_is_numpys_shifted_comparisons():
+    from inference.motion.self_contact import SMOOTH_FRAMES, _window_argmax
+
+    rng = np.random.default_rng(2)
+    x = np.round(rng.random(40), 1)  # ties
+    x[5:9] = 0.0
+    segments = [7, 1, 20, 12]
+    seg = np.repeat(np.arange(len(segments)), segments)
+    best = np.arange(len(x))
+    for off in range(-SMOOTH_FRAMES, SMOOTH_FRAMES + 1):
+        j = np.clip(np.arange(len(x)) + off, 0, len(x) - 1)
+        best = np.where((seg[j] == seg) & (x[j] > x[best]), j, best)
+    got = _window_argmax(x, segments)
+    assert np.array_equal(got, best) and (got != np.arange(len(x))).any()

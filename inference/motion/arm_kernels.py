@@ -70,3 +70,19 @@ def arm_steps(tp, tn, ap, shoulder, active, near, found, margin_m, reach_m, tang
             continue
         step[t] = min((best + margin) / lever, np.float32(cap))
         axes[t, 0], axes[t, 1], axes[t, 2] = k0 / lever, k1 / lever, k2 / lever
+
+
+@numba.njit(**_JIT)
+def window_argmax(x, seg, smooth, best):
+    """best[i] = the index of the largest x[j], |j - i| <= smooth, j clipped to [0, T) and in i's
+    segment (seg (T,) int64 ids), written into best (T,) int64: the offsets -smooth..smooth in
+    turn from best[i] = i, an offset taking over only where x is strictly larger (numpy's loop of
+    shifted comparisons, the same ties)."""
+    T = x.shape[0]
+    for i in range(T):
+        b = i
+        for off in range(-smooth, smooth + 1):
+            j = min(max(i + off, 0), T - 1)
+            if seg[j] == seg[i] and x[j] > x[b]:
+                b = j
+        best[i] = b

@@ -49,7 +49,7 @@ import numpy as np
 
 from inference.body import BodyModel, BodyShape, linear_blend_skinning, skin_points_and_normals
 from inference.mesh import vertex_normals
-from inference.motion.arm_kernels import arm_steps
+from inference.motion.arm_kernels import arm_steps, window_argmax
 from inference.repair_kernels import frame_knn
 from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -125,8 +125,11 @@ class ArmLifter:
         reach_m: float = DEFAULT_REACH_M,
         tangent_m: float = DEFAULT_TANGENT_M,
         iterations: int = 3,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """``lift_arms`` for this body (same arguments and results)."""
+        poses: bool = False,
+    ) -> tuple[np.ndarray, ...]:
+        """``lift_arms`` for this body (same arguments and results); ``poses``: also the bone poses
+        and skinning transforms of the lifted motion (1, T, J, 4, 4) float32, ``BodyModel.pose``'s
+        (each frame posed again after its last change), so that the caller need not pose it again."""
         body, shape, rest, rest_n = self.body, self.shape, self.rest, self.rest_normals
         rotations = np.array(rotations, np.float32)
         translation = np.asarray(translation, np.float32)
@@ -164,7 +167,7 @@ class ArmLifter:
             u = moved[0] if len(moved) == 1 else np.union1d(*moved)
             Wa, Ta = body.pose(shape.rest_bone_poses, rotations[None, u], translation[None, u])
             W[0, u], transforms[0, u] = Wa[0], Ta[0]
-        return rotations, angles
+        return (rotations, angles, W, transforms) if poses else (rotations, angles)
 
 
 def lift_arms(
@@ -247,14 +250,12 @@ def _steps(tp, tn, ap, shoulder, active, T, margin_m, reach_m, tangent_m) -> tup
 
 
 def _window_argmax(x: np.ndarray, segments: Sequence[int]) -> np.ndarray:
-    """Index of the largest x within SMOOTH_FRAMES frames of each frame, inside its segment (T,)."""
-    T = len(x)
+    """Index of the largest x within SMOOTH_FRAMES frames of each frame, inside its segment (T,):
+    the offsets -S..S in turn, a later one taking over only where strictly larger (compiled,
+    ``arm_kernels.window_argmax``: numpy's 2 S + 1 shifted comparisons cost ~0.15 ms a call)."""
     seg = np.repeat(np.arange(len(segments)), segments)
-    best = np.arange(T)
-    for off in range(-SMOOTH_FRAMES, SMOOTH_FRAMES + 1):  # 2 S + 1 shifted comparisons
-        j = np.clip(np.arange(T) + off, 0, T - 1)
-        better = (seg[j] == seg) & (x[j] > x[best])
-        best = np.where(better, j, best)
+    best = np.empty(len(x), np.int64)
+    window_argmax(np.ascontiguousarray(x, np.float64), seg, SMOOTH_FRAMES, best)
     return best
 
 
@@ -270,7 +271,8 @@ def _rotate_bone(body: BodyModel, shape: BodyShape, W: np.ndarray, rot: np.ndarr
 
 
 def warm_up() -> None:
-    """Compile the nearest-torso search and the step (or load numba's cache) for a request's float32
-    points, so that no request pays a first compilation."""
+    """Compile the nearest-torso search, the step and the window maximum (or load numba's cache) for
+    a request's float32 points, so that no request pays a first compilation."""
     pts = np.zeros((1, 2, 3), np.float32)
     _steps(pts, pts, pts, pts[0, :1], np.zeros(1, np.int64), 1, DEFAULT_MARGIN_M, DEFAULT_REACH_M, DEFAULT_TANGENT_M)
+    _window_argmax(np.zeros(1), [1])
