@@ -37,3 +37,26 @@ def normals_at(x, faces, face_ids, slot, out):
             if length > 1e-20:
                 for c in range(3):
                     out[t, s, c] /= length
+
+
+@numba.njit(**_JIT)
+def normal_points_down(x, faces, out):
+    """out[t, v] = the area-weighted normal of vertex v points down y in frame t: the sign of
+    sum_{f ∋ v} ((x1 - x0) x (x2 - x0))_y, the faces in ascending order as ``normals_at`` sums them
+    (its normalisation keeps the sign), so the same answer as ``normals_at(...)[..., 1] < 0`` over
+    every face and vertex, from the y component alone. x (T, V, 3) float; faces (F, 3) int64; out
+    (T, V) bool (overwritten)."""
+    T, V = x.shape[0], x.shape[1]
+    ny = np.empty(V)
+    for t in range(T):
+        ny[:] = 0.0
+        for f in range(faces.shape[0]):
+            i, j, k = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, az = np.float64(x[t, j, 0]) - x[t, i, 0], np.float64(x[t, j, 2]) - x[t, i, 2]
+            bx, bz = np.float64(x[t, k, 0]) - x[t, i, 0], np.float64(x[t, k, 2]) - x[t, i, 2]
+            n = az * bx - ax * bz
+            ny[i] += n
+            ny[j] += n
+            ny[k] += n
+        for v in range(V):
+            out[t, v] = ny[v] < 0.0

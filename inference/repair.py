@@ -593,3 +593,6 @@ def warm_up() -> None:
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
     points = np.array([[0.1, 0.1, 0.1], [2.0, 2.0, 2.0]], np.float32)[None, None]
     exact_repair(points, tet, faces, 0.01)
+    ray_down(tet[0], faces)  # a garment's rays (its kept topology: read-only int64 faces)
+    # an outfit's anchor normals under an outer layer's moves (``_sink_under_moved``: the body's int32 faces)
+    mesh_kernels.normals_at(tet[0], faces, np.arange(4, dtype=np.int64), np.arange(4, dtype=np.int64), np.empty((1, 4, 3)))

@@ -276,9 +276,9 @@ def ray_down(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     ~1.8). points (B, N, 3) float, metres, of a mesh with outward faces (F, 3) -> (B, N) bool."""
     points = np.ascontiguousarray(_frames("points", points))
     faces = _checked_topology(faces, points.shape[1])[0]
-    n = np.empty(points.shape, np.float64)
-    mesh_kernels.normals_at(points, faces, np.arange(len(faces)), np.arange(points.shape[1]), n)
-    return n[..., 1] < 0.0
+    out = np.empty(points.shape[:2], bool)
+    mesh_kernels.normal_points_down(points, faces, out)  # the y component's sign alone (~1/3 of the normals' work)
+    return out
 
 
 def winding_numbers(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:

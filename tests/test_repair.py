@@ -555,3 +555,24 @@ def test_rays_through_a_projected_vertex_count_as_rays_beside_it():
     counted = WindingGrid(v[None], f).count(q[None])[0]
     np.testing.assert_array_equal(counted[off], np.round(exact[off]).astype(np.int32))
     assert off.sum() > 2900 and (counted[off] > 0).sum() > 500  # inside both parts, one, or none
+
+
+def test_ray_down_is_the_sign_of_the_normals_y():
+    # ``ray_down`` sums the faces' y components alone: the same answers as the full area-weighted
+    # normals' (``mesh_kernels.normals_at``, which the normalisation leaves the sign of), a
+    # crumpled sphere with flat (zero) and degenerate faces included
+    import trimesh
+
+    from inference import mesh_kernels
+
+    s = trimesh.creation.icosphere(subdivisions=3)
+    rng = np.random.default_rng(9)
+    frames = (s.vertices[None] + rng.normal(0, 0.05, (3, len(s.vertices), 3))).astype(np.float32)
+    frames[1, :, 0] = 0.25  # a frame flattened onto a plane of x: every normal along x, its y component 0
+    faces = np.asarray(s.faces, np.int64).copy()
+    faces[::50, 1] = faces[::50, 0]  # degenerate faces
+    n = np.empty(frames.shape, np.float64)
+    mesh_kernels.normals_at(np.ascontiguousarray(frames), faces, np.arange(len(faces)), np.arange(frames.shape[1]), n)
+    got = ray_down(frames, faces)
+    assert np.array_equal(got, n[..., 1] < 0.0)
+    assert got[0].any() and not got[0].all() and not got[1].any()
