@@ -143,7 +143,7 @@ def _push_planes(
         raise InputValueError("margin_m", f"expected >= 0, got {margin_m}")
     _, BT, N = P.shape
     k = candidates.shape[2]
-    cand = np.moveaxis(candidates, 2, 0).astype(np.intp)  # (k, B|1, N)
+    cand = np.ascontiguousarray(np.moveaxis(candidates, 2, 0), np.intp)  # (k, B|1, N), C order: each block's ids come out C-contiguous
     batch_of_frame = np.arange(BT) // T if cand.shape[1] > 1 else np.zeros(BT, np.intp)
     offset = C[0] * Nrm[0] + C[1] * Nrm[1] + C[2] * Nrm[2]  # o_j = c_j . n_j, (BT*M,)
     keep = margin_m + _screen_tolerance(P, C)
