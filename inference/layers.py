@@ -404,9 +404,10 @@ def untangle_layers(
             p[f, k] = a[f, k] + s * (d / np.maximum(Ls, 1e-12))[:, None]
             held[i] = int((reach - gap_m < floors_m[i] / up).sum())
         out[i] = p.astype(np.float32)
-        step = np.linalg.norm(out[i] - layers[i], axis=-1)
+        diff = out[i] - layers[i]
+        step = np.linalg.norm(diff[(diff != 0).any(-1)], axis=-1)  # the vertex-frames it moved (the others' are 0)
         moved[i] = int((step > 0).sum())
-        max_move = max(max_move, float(step.max()))
+        max_move = max(max_move, float(step.max(initial=0.0)))
     return out, UntangleReport(moved, held, max_move)
 
 
