@@ -362,10 +362,10 @@ def untangle_layers(
             # the two layers never come near each other)
             ov, rows = contacts.outer_vertices[i, j], contacts.inner_faces[i, j]
             if len(ov) and len(rows):
-                o = out[j][:, ov].astype(np.float64)
-                ray = o - body[:, anchors[j][ov]]
-                ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
-                _, t_o, f_o = anchor_crossings(o + ray * reach_m, o, LayerFrames(p, faces[i][rows]), exiting=True)
+                o = np.ascontiguousarray(out[j][:, ov], np.float64)
+                ahead = np.empty_like(o)  # o + reach_m along its unit anchor ray (compiled)
+                layers_kernels.ray_starts(o, np.ascontiguousarray(body[:, anchors[j][ov]]), float(reach_m), ahead)
+                _, t_o, f_o = anchor_crossings(ahead, o, LayerFrames(p, faces[i][rows]), exiting=True)
                 frame, idx = np.nonzero(t_o <= 1.0)
                 corners = faces[i][rows[f_o[frame, idx]]]  # (H, 3)
                 np.maximum.at(sink, (np.repeat(frame, 3), corners.ravel()), np.repeat(t_o[frame, idx] * reach_m + gap_m, 3))
@@ -422,6 +422,7 @@ def warm_up() -> None:
     p = tet.astype(np.float64)
     seg, L = np.empty_like(p), np.empty(p.shape[:2])
     layers_kernels.anchor_segments(p, 0.5 * p, seg, L)
+    layers_kernels.ray_starts(p, tet, 0.02, np.empty_like(p))  # the outer vertices' rays (float32 anchors)
     A = _ring_matrix(faces, 4)
     layers_kernels.sink_along_rays(p, seg, L, _spread(np.ones((1, 4)), faces), np.ascontiguousarray(seg), A.indptr, A.indices, A.data,
                                    RAY_SMOOTHING, 0.002, MIN_SINK_COS)

@@ -31,6 +31,23 @@ def anchor_segments(p, a, seg, length):
 
 
 @numba.njit(**_JIT)
+def ray_starts(o, a, reach, out):
+    """out = o + reach (o - a) / max(|o - a|, 1e-12), in place: each outer vertex o pushed ``reach``
+    metres on along its anchor ray (step (a)'s segments start there); o (T, n, 3) float64, a (T, n, 3)
+    its posed anchors (float32 or float64), out (T, n, 3) float64."""
+    T, n = o.shape[0], o.shape[1]
+    for t in range(T):
+        for v in range(n):
+            r0 = o[t, v, 0] - np.float64(a[t, v, 0])
+            r1 = o[t, v, 1] - np.float64(a[t, v, 1])
+            r2 = o[t, v, 2] - np.float64(a[t, v, 2])
+            scale = max(np.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-12)
+            out[t, v, 0] = o[t, v, 0] + r0 / scale * reach
+            out[t, v, 1] = o[t, v, 1] + r1 / scale * reach
+            out[t, v, 2] = o[t, v, 2] + r2 / scale * reach
+
+
+@numba.njit(**_JIT)
 def spread(flat, N, start, dst, decay, rings):
     """Each nonzero sink of flat (T * N,) spread over the mesh, in place: for ``rings`` rings, every
     neighbour dst[start[v]:start[v + 1]] of a vertex v that rose in the ring before (at first: every

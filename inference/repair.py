@@ -270,8 +270,9 @@ def repair_layers(
             if order is not None:
                 # on its skin vertex (the layer stage's half-way under an outer layer that crosses
                 # at the anchor): on the surface, where a ray's inside test is a tie, so it moves too
-                off = Pb - Bv[sl][:, order.anchors[i]]
-                tested |= np.einsum("tnc,tnc->tn", off, off) < ON_SKIN_M ** 2
+                Bb = np.ascontiguousarray(Bv[sl])  # compiled: |p - b_anchor|^2 in the arrays' precision, as numpy's einsum
+                kernels.on_skin(np.ascontiguousarray(Pb), Bb, np.ascontiguousarray(order.anchors[i], np.int64),
+                                np.result_type(Pb, Bb).type(ON_SKIN_M ** 2), tested)
             frame, idx = np.nonzero(tested)
             if not len(frame):
                 continue
@@ -596,3 +597,9 @@ def warm_up() -> None:
     ray_down(tet[0], faces)  # a garment's rays (its kept topology: read-only int64 faces)
     # an outfit's anchor normals under an outer layer's moves (``_sink_under_moved``: the body's int32 faces)
     mesh_kernels.normals_at(tet[0], faces, np.arange(4, dtype=np.int64), np.arange(4, dtype=np.int64), np.empty((1, 4, 3)))
+    # and its inner layers' points on their skin vertex (float32 frames; anchors built per request or
+    # kept, read-only, per body: ``inference.layers.kept_anchors``)
+    ids = np.arange(4, dtype=np.int64)
+    kernels.on_skin(tet[0], tet[0], ids, np.float32(ON_SKIN_M ** 2), np.zeros((1, 4), bool))
+    ids.flags.writeable = False
+    kernels.on_skin(tet[0], tet[0], ids, np.float32(ON_SKIN_M ** 2), np.zeros((1, 4), bool))

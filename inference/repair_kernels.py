@@ -189,3 +189,18 @@ def skin_targets(Bb, frame, ids, faces, indptr, face_of, margin_m, points, out):
             out[r, k + j, 0] = c0 + margin_m * s0
             out[r, k + j, 1] = c1 + margin_m * s1
             out[r, k + j, 2] = c2 + margin_m * s2
+
+
+@numba.njit(**_JIT)
+def on_skin(P, B, anchors, eps2, tested):
+    """tested[t, v] |= |P[t, v] - B[t, anchors[v]]|^2 < eps2, in place: a layer's points on their
+    skin vertex (P (T, N, 3), B (T, Vb, 3) float; eps2 a scalar of their common type). The squared
+    length in that type as numpy's einsum sums it ((x^2 + y^2) + z^2), without the (T, N, 3)
+    difference (~0.3 ms a frame of an outfit's inner layer)."""
+    T, N = P.shape[0], P.shape[1]
+    for t in range(T):
+        for v in range(N):
+            a = anchors[v]
+            d0, d1, d2 = P[t, v, 0] - B[t, a, 0], P[t, v, 1] - B[t, a, 1], P[t, v, 2] - B[t, a, 2]
+            if d0 * d0 + d1 * d1 + d2 * d2 < eps2:
+                tested[t, v] = True

@@ -90,3 +90,15 @@ def test_the_moves_are_the_numpy_smoothing_and_floor():
     assert np.array_equal(got, want)
     moved = (got != p).any(-1)
     assert moved.sum() > 100 and not moved[2].any() and not moved[sink == 0].any()
+
+
+def test_the_rays_starts_are_numpys():
+    # step (a)'s segment starts: each outer vertex pushed reach_m on along its unit anchor ray
+    _, o, _, rng = _mesh_and_frames(seed=3)
+    a = (o * rng.uniform(0.8, 0.97, (*o.shape[:2], 1))).astype(np.float32)  # posed anchors come float32
+    a[0, 0] = o[0, 0]  # a zero ray: the 1e-12 floor
+    ray = o - a
+    ray /= np.maximum(np.linalg.norm(ray, axis=-1), 1e-12)[..., None]
+    got = np.empty_like(o)
+    layers_kernels.ray_starts(o, a, 0.02, got)
+    assert np.array_equal(got, o + ray * 0.02)

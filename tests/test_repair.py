@@ -576,3 +576,22 @@ def test_ray_down_is_the_sign_of_the_normals_y():
     got = ray_down(frames, faces)
     assert np.array_equal(got, n[..., 1] < 0.0)
     assert got[0].any() and not got[0].all() and not got[1].any()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_points_on_their_skin_vertex_are_numpys(dtype):
+    # ``repair_kernels.on_skin``: |p - b_anchor|^2 < eps^2 in the frames' precision, as numpy's
+    # einsum sums the squares; points on, near and off their anchors
+    from inference import repair_kernels
+    from inference.repair import ON_SKIN_M
+
+    rng = np.random.default_rng(6)
+    B = rng.normal(0, 0.3, (3, 50, 3)).astype(dtype)
+    anchors = rng.integers(0, 50, 40)
+    P = (B[:, anchors] + rng.normal(0, 1, (3, 40, 1)) * 10.0 ** rng.integers(-8, -2, (3, 40, 1)) * rng.normal(0, 1, (3, 40, 3))).astype(dtype)
+    P[1, :5] = B[1, anchors[:5]]  # exactly on
+    off = P - B[:, anchors]
+    want = np.einsum("tnc,tnc->tn", off, off) < ON_SKIN_M ** 2
+    got = np.zeros(want.shape, bool)
+    repair_kernels.on_skin(P, B, anchors.astype(np.int64), np.dtype(dtype).type(ON_SKIN_M ** 2), got)
+    assert np.array_equal(got, want) and want.any() and not want.all()
