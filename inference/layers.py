@@ -350,9 +350,9 @@ def untangle_layers(
     for i in range(len(out) - 2, -1, -1):  # outside in: each layer under those already placed
         p = np.ascontiguousarray(out[i], np.float64)  # C order, whatever the stage before left: the kernels' layout
         T, N = p.shape[:2]
-        a = np.ascontiguousarray(body[:, anchors[i]], np.float64)  # (T, N, 3) posed anchors
-        seg, L = np.empty_like(p), np.empty((T, N))
-        layers_kernels.anchor_segments(p, a, seg, L)  # seg = p - a, L = |seg|
+        a, seg, L = np.empty_like(p), np.empty_like(p), np.empty((T, N))
+        # the posed anchors a (T, N, 3), seg = p - a and L = |seg| (compiled)
+        layers_kernels.anchor_segments(p, np.ascontiguousarray(body), np.ascontiguousarray(anchors[i], np.int64), a, seg, L)
         sink = np.zeros((T, N))
         t_hit = np.full((T, N), 2.0)
         grids = {}
@@ -404,10 +404,9 @@ def untangle_layers(
             p[f, k] = a[f, k] + s * (d / np.maximum(Ls, 1e-12))[:, None]
             held[i] = int((reach - gap_m < floors_m[i] / up).sum())
         out[i] = p.astype(np.float32)
-        diff = out[i] - layers[i]
-        step = np.linalg.norm(diff[(diff != 0).any(-1)], axis=-1)  # the vertex-frames it moved (the others' are 0)
-        moved[i] = int((step > 0).sum())
-        max_move = max(max_move, float(step.max(initial=0.0)))
+        count, longest = layers_kernels.moves(out[i], np.ascontiguousarray(layers[i]))
+        moved[i] = int(count)
+        max_move = max(max_move, float(longest))
     return out, UntangleReport(moved, held, max_move)
 
 
@@ -421,7 +420,11 @@ def warm_up() -> None:
     # the sinking's kernels, with the layouts a request gives them (float64 frames, scipy's CSR)
     p = tet.astype(np.float64)
     seg, L = np.empty_like(p), np.empty(p.shape[:2])
-    layers_kernels.anchor_segments(p, 0.5 * p, seg, L)
+    ids = np.arange(4, dtype=np.int64)
+    layers_kernels.anchor_segments(p, tet, ids, np.empty_like(p), seg, L)
+    ids.flags.writeable = False  # a static garment's anchors are kept per body, read-only (``kept_anchors``)
+    layers_kernels.anchor_segments(p, tet, ids, np.empty_like(p), seg, L)
+    layers_kernels.moves(tet, tet)
     layers_kernels.ray_starts(p, tet, 0.02, np.empty_like(p))  # the outer vertices' rays (float32 anchors)
     A = _ring_matrix(faces, 4)
     layers_kernels.sink_along_rays(p, seg, L, _spread(np.ones((1, 4)), faces), np.ascontiguousarray(seg), A.indptr, A.indices, A.data,

@@ -19,15 +19,35 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 
 
 @numba.njit(**_JIT)
-def anchor_segments(p, a, seg, length):
-    """seg = p - a and its length |seg| (numpy's ``linalg.norm(seg, axis=-1)``), in place:
-    p, a, seg (T, N, 3) float64; length (T, N) float64."""
+def anchor_segments(p, body, anchors, a, seg, length):
+    """The posed anchors a = body[:, anchors] in float64, seg = p - a and its length |seg|
+    (numpy's ``linalg.norm(seg, axis=-1)``), in place: p, a, seg (T, N, 3) float64; body (T, Vb, 3)
+    float32 or float64; anchors (N,) int64; length (T, N) float64."""
     T, N = p.shape[0], p.shape[1]
     for t in range(T):
         for v in range(N):
-            s0, s1, s2 = p[t, v, 0] - a[t, v, 0], p[t, v, 1] - a[t, v, 1], p[t, v, 2] - a[t, v, 2]
+            b = anchors[v]
+            a0, a1, a2 = np.float64(body[t, b, 0]), np.float64(body[t, b, 1]), np.float64(body[t, b, 2])
+            a[t, v, 0], a[t, v, 1], a[t, v, 2] = a0, a1, a2
+            s0, s1, s2 = p[t, v, 0] - a0, p[t, v, 1] - a1, p[t, v, 2] - a2
             seg[t, v, 0], seg[t, v, 1], seg[t, v, 2] = s0, s1, s2
             length[t, v] = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+
+
+@numba.njit(**_JIT)
+def moves(after, before):
+    """How many vertex-frames moved (a move of nonzero length) and the longest move, metres: after,
+    before (T, N, 3); the length in their common precision as numpy's ``linalg.norm`` of the
+    difference (without the (T, N, 3) difference: ~4 ms of a 30-frame outfit request)."""
+    moved, longest = 0, 0.0
+    for t in range(after.shape[0]):
+        for v in range(after.shape[1]):
+            d0, d1, d2 = after[t, v, 0] - before[t, v, 0], after[t, v, 1] - before[t, v, 1], after[t, v, 2] - before[t, v, 2]
+            step = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if step > 0:
+                moved += 1
+                longest = max(longest, step)
+    return moved, longest
 
 
 @numba.njit(**_JIT)

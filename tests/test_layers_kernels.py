@@ -56,11 +56,27 @@ def _sink_numpy(p, seg, L, sink, n, faces, floor):
 
 
 def test_anchor_segments_are_the_differences_and_numpys_norms():
-    _, p, a, _ = _mesh_and_frames()
-    seg, L = np.empty_like(p), np.empty(p.shape[:2])
-    layers_kernels.anchor_segments(p, a, seg, L)
-    assert np.array_equal(seg, p - a)
-    assert np.array_equal(L, np.linalg.norm(p - a, axis=-1))
+    _, p, _, rng = _mesh_and_frames()
+    body = rng.normal(0, 0.3, (p.shape[0], 300, 3)).astype(np.float32)  # posed bodies come float32
+    anchors = rng.integers(0, 300, p.shape[1])
+    a_want = body[:, anchors].astype(np.float64)
+    a, seg, L = np.empty_like(p), np.empty_like(p), np.empty(p.shape[:2])
+    layers_kernels.anchor_segments(p, body, anchors.astype(np.int64), a, seg, L)
+    assert np.array_equal(a, a_want) and np.array_equal(seg, p - a_want)
+    assert np.array_equal(L, np.linalg.norm(p - a_want, axis=-1))
+
+
+def test_the_moves_counted_are_numpys():
+    # the layer stage's report: vertex-frames moved and the longest move, float32 and mixed inputs
+    _, p, _, rng = _mesh_and_frames()
+    before = p.astype(np.float32)
+    after = before.copy()
+    pick = rng.random(after.shape[:2]) < 0.1
+    after[pick] += rng.normal(0, 0.01, (pick.sum(), 3)).astype(np.float32)
+    for b in (before, p):  # float32, and a float64 input (the rounding moves every vertex)
+        step = np.linalg.norm(after - b, axis=-1)
+        count, longest = layers_kernels.moves(after, b)
+        assert count == (step > 0).sum() and longest == step.max()
 
 
 def test_the_spread_is_the_numpy_rings():
