@@ -175,8 +175,8 @@ class Runtime:
             layers.warm_up()  # and the layer stage's
             strain.warm_up()  # and the compression limit's (learned canonical garments)
             nearest.warm_up()  # and the guard's per-frame nearest body vertices
-            push_kernels.warm_up()  # and its plane push
-            self_contact.warm_up()  # and the arm lift's nearest torso points and step
+            push_kernels.warm_up()  # and its plane push and collider planes
+            self_contact.warm_up()  # and the arm lift's nearest torso points, step and window maximum
             diffused.warm_up()  # and the diffused body's interpolation and eq. 6.7's blend
         runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
         log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",
