@@ -315,7 +315,7 @@ def _dynamic_candidates(Pb: np.ndarray, C: np.ndarray, flat: np.ndarray, plan: G
     k = prev.shape[1]
     C3 = C.reshape(3, -1, S)
     extra = np.repeat(flat[:1], k, axis=0)
-    found = nearest.frames_knn(C3, np.ascontiguousarray(region, np.int64), np.ascontiguousarray(Pb, np.float64),
-                               np.ascontiguousarray(dyn, np.int64), N, f0, f1, k, nearest.CELL_M, nearest.COLD_RHO_M, prev)
-    nearest.flat_candidates(found, np.ascontiguousarray(region, np.int64), np.ascontiguousarray(dyn, np.int64), N, f0, S, extra)
+    region, dyn = np.ascontiguousarray(region, np.int64), np.ascontiguousarray(dyn, np.int64)
+    found = nearest.frames_knn(C3, region, np.ascontiguousarray(Pb, np.float64), dyn, N, f0, f1, k, nearest.CELL_M, nearest.COLD_RHO_M, prev)
+    nearest.flat_candidates(found, region, dyn, N, f0, S, extra)
     return extra
