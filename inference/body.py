@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from inference.errors import InputShapeError
+from inference.pose_kernels import forward_kinematics
 from inference.rotations import axis_angle_to_matrix
 
 ASSETS_DIR = Path(__file__).resolve().parents[1] / "assets"
@@ -146,6 +147,7 @@ class BodyModel:
         np.add.at(dense, (np.repeat(np.arange(V), self.skin_indices.shape[1]), self.skin_indices.ravel()), self.skin_weights.ravel())
         self.dense_weights = dense
         self.levels = depth_levels(self.parents)
+        self._order = np.concatenate(self.levels).astype(np.int64)  # root first, parents before children
         self.helpers = helpers
 
     @classmethod
@@ -244,32 +246,13 @@ class BodyModel:
         T = rotations.shape[1]
         if translation.shape != (B, T, 3):
             raise InputShapeError("translation", f"({B}, {T}, 3)", translation.shape)
-        P = rest_bone_poses.astype(np.float64)[:, None]  # (B, 1, J, 4, 4)
-        R, h = P[..., :3, :3], P[..., :3, 3]
-        D = axis_angle_to_matrix(rotations.astype(np.float64))  # (B, T, J, 3, 3)
-        # Local transform K_c = [R_p^T R_c D_c | R_p^T (h_c - h_p)]  (anny local-bone, U = R)
-        par = self.parents.copy()
-        par[0] = 0
-        Rp_t = np.swapaxes(R[..., par, :, :], -1, -2)
-        K = np.zeros((B, T, J, 4, 4))
-        K[..., :3, :3] = Rp_t @ R @ D
-        K[..., :3, 3] = np.einsum("...ij,...j->...i", Rp_t, h - h[..., par, :])
-        K[..., 3, 3] = 1.0
-        # Root: W_0 = [R_0 D_0 | h_0 + trans]
-        W = np.empty_like(K)
-        W[..., 0, :, :] = 0.0
-        W[..., 0, :3, :3] = R[..., 0, :, :] @ D[..., 0, :, :]
-        W[..., 0, :3, 3] = h[..., 0, :] + translation
-        W[..., 0, 3, 3] = 1.0
-        for level in self.levels[1:]:  # W_c = W_p K_c, one batched product per depth level
-            W[..., level, :, :] = W[..., self.parents[level], :, :] @ K[..., level, :, :]
-        # T_c = W_c P_c^-1 = [W_R R^T | w - W_R R^T h]
-        TR = W[..., :3, :3] @ np.swapaxes(R, -1, -2)
-        transforms = np.zeros_like(W)
-        transforms[..., :3, :3] = TR
-        transforms[..., :3, 3] = W[..., :3, 3] - np.einsum("...ij,...j->...i", TR, h)
-        transforms[..., 3, 3] = 1.0
-        return W.astype(np.float32), transforms.astype(np.float32)
+        # compiled (``inference.pose_kernels``: the numpy form's float64 products, bitwise); every
+        # input is widened to float64 first, exactly, so one signature serves float32 and float64 callers
+        W = np.empty((B, T, J, 4, 4), np.float32)
+        transforms = np.empty((B, T, J, 4, 4), np.float32)
+        forward_kinematics(np.ascontiguousarray(rest_bone_poses, np.float64), np.ascontiguousarray(rotations, np.float64),
+                           np.ascontiguousarray(translation, np.float64), self.parents, self._order, W, transforms)
+        return W, transforms
 
     def skin(self, rest_vertices: np.ndarray, transforms: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
         """Linear blend skinning, eq. 4.1/4.3: v' = sum_j w_vj T_j v.
@@ -348,3 +331,12 @@ def linear_blend_skinning_reference(rest_vertices: np.ndarray, weights: np.ndarr
 # Vertex-frames per block in ``linear_blend_skinning``: the block's A (12 floats per vertex-frame,
 # ~3 MB) stays in cache (dress, 8 x 80 frames, one thread: 0.16 ms per frame with 400,000, 0.115 with 50,000).
 _LBS_BLOCK = 64_000
+
+
+def warm_up() -> None:
+    """Compile the forward kinematics (or load numba's cache) with a two-bone chain, so that no
+    request pays a first compilation: every process that drapes calls it at start-up."""
+    rest = np.tile(np.eye(4), (1, 2, 1, 1))
+    out = np.empty((1, 1, 2, 4, 4), np.float32)
+    forward_kinematics(rest, np.zeros((1, 1, 2, 3)), np.zeros((1, 1, 3)), np.array([-1, 0]), np.array([0, 1]), out, out.copy())
+

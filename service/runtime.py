@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
+from inference import body as body_model
 from inference import diffused, layers, repair, strain, winding
 from inference.guard import nearest, push_kernels
 from inference.motion import self_contact
@@ -178,6 +179,7 @@ class Runtime:
             push_kernels.warm_up()  # and its plane push and collider planes
             self_contact.warm_up()  # and the arm lift's nearest torso points, step and window maximum
             diffused.warm_up()  # and the diffused body's interpolation and eq. 6.7's blend
+            body_model.warm_up()  # and the forward kinematics
         runtime = cls(settings, body, catalog, clips, defaults, models, AssetDigest.of(settings.assets_dir), canonical)
         log.info("loaded assets in %.2f s (learned models: %s; assets sha256 %s)", time.perf_counter() - t0, ", ".join(loaded) or "none",
                  runtime.assets.combined[:16])

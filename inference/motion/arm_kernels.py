@@ -1,5 +1,6 @@
-"""Compiled kernel of the arm lift (``inference.motion.self_contact``): one abduction step per
-frame from the arm points' nearest torso points (numba, no Python objects, one thread).
+"""Compiled kernels of the arm lift (``inference.motion.self_contact``): one abduction step per
+frame from the arm points' nearest torso points, the window maximum of the steps, and the arm's
+new local rotation (numba, no Python objects, one thread).
 
 Units: metres, radians. Arrays: float32 points and normals, int64 ids.
 """
@@ -7,6 +8,8 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+
+from inference.rotation_kernels import matrix_axis_angle, mul3, rotvec_matrix
 
 _JIT = {"nogil": True, "cache": True, "fastmath": False}
 
@@ -86,3 +89,36 @@ def window_argmax(x, seg, smooth, best):
             if seg[j] == seg[i] and x[j] > x[b]:
                 b = j
         best[i] = b
+
+
+@numba.njit(**_JIT)
+def rotate_bone(parent, C, axes, theta, rot, out):
+    """The bone's local rotation vector after the world rotation R(axes, theta) about its head,
+    per frame: D' = A^T Q A D with A = W_parent C, Q = R(axes theta), D = R(rot), bitwise numpy's
+    ``(A^T @ Q @ A @ D)`` and ``matrix_to_axis_angle`` (``inference.rotation_kernels``).
+
+    parent : (n, 3, 3) float32, the parent bone's world rotation W_parent per frame
+    C      : (3, 3) float64, R_parent^T R_bone (the rest frames)
+    axes   : (n, 3) float64 unit axes; theta (n,) float64 radians; rot (n, 3) float32 the bone's
+             local rotation vectors
+    out    : (n, 3) float32
+    """
+    m = np.empty((7, 3, 3))  # Wp, A, A^T, Q, D and two products
+    Wp, A, At, Q, D, M, M2 = m[0], m[1], m[2], m[3], m[4], m[5], m[6]
+    r = np.empty(3)
+    for t in range(parent.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                Wp[i, j] = np.float64(parent[t, i, j])
+        mul3(Wp, C, A)
+        for i in range(3):
+            for j in range(3):
+                At[i, j] = A[j, i]
+        rotvec_matrix(axes[t, 0] * theta[t], axes[t, 1] * theta[t], axes[t, 2] * theta[t], Q)
+        rotvec_matrix(np.float64(rot[t, 0]), np.float64(rot[t, 1]), np.float64(rot[t, 2]), D)
+        mul3(At, Q, M)
+        mul3(M, A, M2)
+        mul3(M2, D, M)
+        matrix_axis_angle(M, r)
+        for c in range(3):
+            out[t, c] = np.float32(r[c])

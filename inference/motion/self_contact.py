@@ -49,9 +49,8 @@ import numpy as np
 
 from inference.body import BodyModel, BodyShape, linear_blend_skinning, skin_points_and_normals
 from inference.mesh import vertex_normals
-from inference.motion.arm_kernels import arm_steps, window_argmax
+from inference.motion.arm_kernels import arm_steps, rotate_bone, window_argmax
 from inference.repair_kernels import frame_knn
-from inference.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 # Bones of each arm chain (shoulder joint = head of the first) and of the body they must clear.
 ARM_CHAINS = (
@@ -261,18 +260,21 @@ def _window_argmax(x: np.ndarray, segments: Sequence[int]) -> np.ndarray:
 
 def _rotate_bone(body: BodyModel, shape: BodyShape, W: np.ndarray, rot: np.ndarray, bone: int, axes: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Local axis-angle (n, 3) of ``bone`` after the world rotations R(axes, theta) about its head
-    in frames with bone poses W (n, J, 4, 4): D <- A^T Q A D, A = W_parent R_parent^T R_bone."""
+    in frames with bone poses W (n, J, 4, 4): D <- A^T Q A D, A = W_parent R_parent^T R_bone
+    (compiled: ``arm_kernels.rotate_bone``; numpy's conversions and products cost ~0.25 ms a call)."""
     R = shape.rest_bone_poses[0, :, :3, :3].astype(np.float64)
     parent = body.parents[bone]
-    A = W[:, parent, :3, :3].astype(np.float64) @ (R[parent].T @ R[bone])
-    Q = axis_angle_to_matrix((axes * theta[:, None]).astype(np.float64))
-    D = axis_angle_to_matrix(rot.astype(np.float64))
-    return matrix_to_axis_angle(np.swapaxes(A, -1, -2) @ Q @ A @ D).astype(np.float32)
+    out = np.empty((len(rot), 3), np.float32)
+    rotate_bone(np.ascontiguousarray(W[:, parent, :3, :3], np.float32), R[parent].T @ R[bone], np.ascontiguousarray(axes, np.float64),
+                np.ascontiguousarray(theta, np.float64), np.ascontiguousarray(rot, np.float32), out)
+    return out
 
 
 def warm_up() -> None:
-    """Compile the nearest-torso search, the step and the window maximum (or load numba's cache) for
-    a request's float32 points, so that no request pays a first compilation."""
+    """Compile the nearest-torso search, the step, the window maximum and the arm's new rotation (or
+    load numba's cache) for a request's float32 points, so that no request pays a first compilation."""
     pts = np.zeros((1, 2, 3), np.float32)
     _steps(pts, pts, pts, pts[0, :1], np.zeros(1, np.int64), 1, DEFAULT_MARGIN_M, DEFAULT_REACH_M, DEFAULT_TANGENT_M)
     _window_argmax(np.zeros(1), [1])
+    rotate_bone(np.tile(np.eye(3, dtype=np.float32), (1, 1, 1)), np.eye(3), np.ones((1, 3)), np.zeros(1), np.zeros((1, 3), np.float32),
+                np.empty((1, 3), np.float32))
