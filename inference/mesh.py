@@ -54,6 +54,15 @@ def per_array(fn):
     return wrapper
 
 
+@per_array
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """The undirected edges of a triangle mesh, each once: (E, 2) int64, lower vertex id first, in
+    increasing order (once per faces array: ``per_array``)."""
+    f = np.asarray(faces, np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
 def face_normals(verts: np.ndarray, faces: np.ndarray, unit: bool = True, dtype: type = np.float32) -> np.ndarray:
     """Face normals n_f = (v1 - v0) x (v2 - v0) (length = 2 * area) or unit.
 

@@ -52,6 +52,15 @@ Over time: each frame's nearest way out is chosen alone, so deep in a limb a poi
 one side to the other between frames; a point keeps the side it had where that costs at most
 HOLD_M more (``_hold_sides``; within a motion, across a long request's chunks).
 
+Between neighbours: each point's nearest way out is chosen alone too, so where two body parts
+overlap (an arm sunk into the flank, a heavy body's thighs) neighbouring points can leave on
+opposite sides and the edge between them stretches across the part (4-9 cm on the validation
+walk). Before the hold, a moved point at an edge stretched by more than KEEP_STRETCH_M takes the
+free target nearest to where its mesh neighbours would carry it, if that costs at most KEEP_M more
+(``_keep_together``). On the validation walk (02_02, 75 frames, five bodies, every garment and
+four outfits) the torn edge-frames (both ends moved, the edge 1 cm and 3x longer than it came)
+fall by 27 %, with as many frame-to-frame jumps as before (docs/benchmarks.md, session 45).
+
 (a point with no outside target among them tries FAR_FACTOR times more candidates; one with
 none there either stays where it is, is counted and logged). The targets lie on the outer surface
 of the union of the overlapping parts, so a point squeezed between an arm and the torso goes
@@ -79,6 +88,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from inference import mesh_kernels
@@ -87,7 +97,7 @@ from inference.errors import InputShapeError
 from inference.guard.constants import DEFAULT_LAYER_GAP_M
 from inference.intersections import CELL_EDGES, first_crossings
 from inference.layers import ON_SKIN_M, LayerFrames
-from inference.mesh import _vertex_faces, faces_around, major_components, per_array
+from inference.mesh import _vertex_faces, faces_around, major_components, mesh_edges, per_array
 from inference.winding import FRAME_BLOCK, WindingGrid, inflated, ray_down
 
 log = logging.getLogger(__name__)
@@ -140,6 +150,21 @@ HOLD_FROM_M = 0.005
 HOLD_M = 0.01
 # ... and only where the flip would move it this much between the frames (smaller ones are no pop).
 HOLD_JUMP_M = 0.02
+# Two neighbouring points of a garment that this stage moves to opposite sides of a body part (moves
+# against each other as ``_flips`` judges two frames' moves) tear the cloth between them; the
+# smaller patch of agreeing moves takes the larger one's side where every one of its points has a
+# free target there at most KEEP_M farther than the one it took (``_keep_together``).
+KEEP_M = 0.02
+KEEP_PASSES = 3
+KEEP_STRETCH_M = 0.01
+# ... where it lies this much from where its neighbours would carry it
+KEEP_OFF_M = 0.01
+# ... among the targets of its KEEP_CANDIDATES nearest skin vertices
+KEEP_CANDIDATES = 32
+# A point asked once is asked again only where its d_i moved this much since.
+KEEP_ASKED_M = 0.001
+# Refused choices an inner layer's point may strike off before it stays where it is.
+KEEP_CONSENTS = 4
 
 
 def exact_repair(
@@ -304,6 +329,9 @@ def repair_layers(
                     held[band] = False
                 in_body = lambda rows: grid.count_at(start[rows], frame[rows], "second") > 0  # noqa: E731
             # the points inside the body itself keep their side of a limb from one frame to the next
+            if faces is not None:  # and neighbours keep one side of it
+                _keep_together(Pb, before[i], start, frame, idx, faces[i], grid, mesh, Bv[sl], skin_ids, skin_faces, offsets[i], min(KEEP_CANDIDATES, k), trees,
+                               under)
             _hold_sides(Pb, before[i], starts[sl], carry[i], Bv[sl], start, frame, idx, held, in_body, grid, mesh, skin_ids, skin_faces,
                         offsets[i], k, trees, under)
             left += int((~ok).sum())
@@ -384,6 +412,122 @@ def _hold_sides(Pb, entering, starts, carry, Bb, start, frame, idx, ok, in_body,
         Pb[t, vt[found]] = targets[r[found], best[found]]
         held_total += int(found.sum())
     return held_total
+
+
+def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_ids, skin_faces, margin_m, k, trees, accept=None) -> int:
+    """Keep neighbouring points together (Pb (T, N, 3), a block of one layer, in place; ``entering``
+    its points as they came to this stage; the points tested: frame, idx, from ``start``; faces:
+    the layer's (F, 3)).
+
+    Each point takes its nearest outside target alone. Where two body parts overlap (an arm sunk
+    into the flank, the thighs of a heavy body), the ways out over either part are about as near,
+    and neighbours can take different ones: the edge between them stretches across the part (4-9
+    cm on the validation walk, 02_02). So a point this stage moved, at an edge it stretched by more
+    than KEEP_STRETCH_M, takes instead, of its free targets (outside the body; under the outer
+    layers where ``accept`` is given) at most KEEP_M farther from it than the one it took, and that
+    one, the one nearest to where its neighbours would carry it,
+
+        d_i = mean over the mesh neighbours j of (p'_j + e_i - e_j),   e: the points as they came,
+
+    in up to KEEP_PASSES rounds (a round's choices change the next one's d). It runs before
+    ``_hold_sides``, which then keeps the points' sides from frame to frame. Returns the points moved."""
+    T, N = Pb.shape[:2]
+    E = mesh_edges(faces)
+    adj = _adjacency(faces, N)
+    incident = _incident_edges(faces, N)
+    total = 0
+    slot = np.full(len(frame), -1, np.int64)  # a row's place in the kept targets (found once)
+    kept_t = np.zeros((0, 2 * k, 3), Pb.dtype)
+    kept_near = np.zeros((0, 2 * k), bool)
+    asked = np.zeros((0, 3))  # the d_i each row was last tested for
+    P32, E32 = np.ascontiguousarray(Pb), np.ascontiguousarray(entering)
+    for _ in range(KEEP_PASSES):
+        move = Pb[frame, idx] - start
+        moved = np.flatnonzero((move != 0.0).any(1))
+        if not len(moved):
+            break
+        row = np.full((T, N), -1, np.int64)
+        row[frame[moved], idx[moved]] = moved
+        # the edges at the points moved more than half the stretch (an edge stretched so has one)
+        wide = moved[np.einsum("nc,nc->n", move[moved], move[moved]) > (0.5 * KEEP_STRETCH_M) ** 2]
+        P32[...] = Pb
+        mark = np.zeros(len(frame), bool)
+        kernels.torn_ends(P32, E32, row, frame[wide], idx[wide], incident.indptr, incident.indices, E, KEEP_STRETCH_M, mark)
+        rows = np.flatnonzero(mark)
+        if not len(rows):
+            break
+        f, v = frame[rows], idx[rows]
+        want = np.empty((len(rows), 3))
+        kernels.carried_places(P32, E32, f, v, adj.indptr, adj.indices, want)
+        off = np.linalg.norm(Pb[f, v] - want, axis=1)
+        # the others are where their neighbours carry them already, or were asked for this d_i
+        again = np.ones(len(rows), bool)
+        seen = np.flatnonzero(slot[rows] >= 0)
+        again[seen] = np.linalg.norm(want[seen] - asked[slot[rows[seen]]], axis=1) > KEEP_ASKED_M
+        far = (off > KEEP_OFF_M) & again
+        rows, f, v, want, off = rows[far], f[far], v[far], want[far], off[far]
+        if not len(rows):
+            break
+        new = rows[slot[rows] < 0]
+        if len(new):  # a row's targets and the farthest it may go, once
+            fn, vn, p = frame[new], idx[new], start[new]
+            had = Pb[fn, vn].copy()
+            Pb[fn, vn] = p  # the targets are p's
+            targets = _posed_targets(Pb, Bb, fn, vn, skin_ids, skin_faces, margin_m, k, trees)  # (n, 2k, 3)
+            Pb[fn, vn] = had
+            near = np.linalg.norm(targets - p[:, None], axis=-1) <= (np.linalg.norm(had - p, axis=1) + KEEP_M)[:, None]
+            slot[new] = len(kept_t) + np.arange(len(new))
+            kept_t, kept_near = np.concatenate([kept_t, targets]), np.concatenate([kept_near, near])
+            asked = np.concatenate([asked, np.zeros((len(new), 3))])
+        asked[slot[rows]] = want
+        cur = Pb[f, v]
+        # a target too far is replaced by the point's place, which is free: the nearest free one to d_i
+        # of the others and the place itself
+        options = np.where(kept_near[slot[rows]][..., None], kept_t[slot[rows]], cur[:, None])
+        # one compiled pass, nearest to d_i first; an inner layer's choice must lie under the outer
+        # layers: a refused one is struck off and the pass asked again (a few times at most)
+        best = grid.first_outside(want, options, f, mesh)
+        ask = np.arange(len(rows))
+        for _ in range(KEEP_CONSENTS if accept is not None else 0):
+            ask = ask[(best[ask] >= 0) & ~(options[ask, np.maximum(best[ask], 0)] == cur[ask]).all(1)]
+            if not len(ask):
+                break
+            yes = accept(f[ask], v[ask], options[ask, best[ask]])
+            no = ask[~yes]
+            if not len(no):
+                break
+            options[no, best[no]] = cur[no]
+            best[no] = grid.first_outside(want[no], options[no], f[no], mesh)
+            ask = no
+        else:
+            if accept is not None and len(ask):  # still refused: the point stays
+                best[ask] = -1
+        took = options[np.arange(len(rows)), np.maximum(best, 0)]
+        better = (best >= 0) & (np.linalg.norm(took - want, axis=1) < off)
+        Pb[f[better], v[better]] = took[better]
+        total += int(better.sum())
+        if not better.any():
+            break
+    return total
+
+
+@per_array
+def _incident_edges(faces: np.ndarray, num_vertices: int) -> sp.csr_matrix:
+    """Vertex -> its edges (rows of ``mesh_edges``) as a CSR matrix, once per faces array."""
+    E = mesh_edges(faces)
+    ids = np.arange(len(E))
+    m = sp.csr_matrix((np.ones(2 * len(E), np.int8), (np.r_[E[:, 0], E[:, 1]], np.r_[ids, ids])), shape=(num_vertices, len(E)))
+    m.indptr, m.indices = m.indptr.astype(np.int64), m.indices.astype(np.int64)
+    return m
+
+
+@per_array
+def _adjacency(faces: np.ndarray, num_vertices: int) -> sp.csr_matrix:
+    """The vertex adjacency of a mesh (num_vertices x num_vertices CSR, no diagonal), once per faces array."""
+    E = mesh_edges(faces)
+    A = sp.coo_matrix((np.ones(2 * len(E), np.int8), (np.r_[E[:, 0], E[:, 1]], np.r_[E[:, 1], E[:, 0]])), shape=(num_vertices, num_vertices)).tocsr()
+    A.indptr, A.indices = A.indptr.astype(np.int64), A.indices.astype(np.int64)
+    return A
 
 
 def _flips(cur: np.ndarray, was: np.ndarray) -> np.ndarray:
@@ -603,3 +747,9 @@ def warm_up() -> None:
     kernels.on_skin(tet[0], tet[0], ids, np.float32(ON_SKIN_M ** 2), np.zeros((1, 4), bool))
     ids.flags.writeable = False
     kernels.on_skin(tet[0], tet[0], ids, np.float32(ON_SKIN_M ** 2), np.zeros((1, 4), bool))
+    # the torn edges and the neighbours' places of ``_keep_together`` (a block's float32 frames)
+    edges, one = mesh_edges(faces), np.zeros(1, np.int64)
+    incident, adj = _incident_edges(faces, 4), _adjacency(faces, 4)
+    kernels.torn_ends(tet[0], tet[0], np.zeros((1, 4), np.int64), one, one, incident.indptr, incident.indices, edges, KEEP_STRETCH_M,
+                      np.zeros(1, bool))
+    kernels.carried_places(tet[0], tet[0], one, one, adj.indptr, adj.indices, np.empty((1, 3)))

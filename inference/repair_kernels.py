@@ -204,3 +204,50 @@ def on_skin(P, B, anchors, eps2, tested):
             d0, d1, d2 = P[t, v, 0] - B[t, a, 0], P[t, v, 1] - B[t, a, 1], P[t, v, 2] - B[t, a, 2]
             if d0 * d0 + d1 * d1 + d2 * d2 < eps2:
                 tested[t, v] = True
+
+
+@numba.njit(**_JIT)
+def torn_ends(P, entering, row, frame, idx, inc_ptr, inc_edge, edges, stretch_m, mark):
+    """The final stage's torn edges (``inference.repair._keep_together``): for each point (frame[r],
+    idx[r]) of a block and each of its edges (inc_ptr, inc_edge: a vertex's rows of ``edges``
+    (E, 2) int64), where the edge is longer than as the points came by more than stretch_m
+    metres, mark[row[t, end]] = True at both ends that have a row (row (T, N) int64, -1 where none).
+    P, entering: (T, N, 3) float32, the block now and as it came; mark (R,) bool, in place."""
+    for r in range(frame.shape[0]):
+        t, v = frame[r], idx[r]
+        for q in range(inc_ptr[v], inc_ptr[v + 1]):
+            e = inc_edge[q]
+            a, b = edges[e, 0], edges[e, 1]
+            now = 0.0
+            was = 0.0
+            for c in range(3):
+                d = np.float64(P[t, a, c]) - np.float64(P[t, b, c])
+                now += d * d
+                d = np.float64(entering[t, a, c]) - np.float64(entering[t, b, c])
+                was += d * d
+            if np.sqrt(now) - np.sqrt(was) > stretch_m:
+                if row[t, a] >= 0:
+                    mark[row[t, a]] = True
+                if row[t, b] >= 0:
+                    mark[row[t, b]] = True
+
+
+@numba.njit(**_JIT)
+def carried_places(P, entering, frame, idx, adj_ptr, adj_idx, out):
+    """Where each point's mesh neighbours would carry it (``inference.repair._keep_together``): out[r]
+    = mean over the neighbours j of v = idx[r] (adj_ptr, adj_idx: CSR adjacency) of P[t, j] -
+    entering[t, j] + entering[t, v], t = frame[r]; P, entering (T, N, 3) float32; out (R, 3) float64
+    (a point with no neighbour: its own place as it came)."""
+    for r in range(frame.shape[0]):
+        t, v = frame[r], idx[r]
+        s0, s1, s2 = 0.0, 0.0, 0.0
+        n = adj_ptr[v + 1] - adj_ptr[v]
+        for q in range(adj_ptr[v], adj_ptr[v + 1]):
+            j = adj_idx[q]
+            s0 += np.float64(P[t, j, 0]) - np.float64(entering[t, j, 0])
+            s1 += np.float64(P[t, j, 1]) - np.float64(entering[t, j, 1])
+            s2 += np.float64(P[t, j, 2]) - np.float64(entering[t, j, 2])
+        m = max(n, 1)
+        out[r, 0] = np.float64(entering[t, v, 0]) + s0 / m
+        out[r, 1] = np.float64(entering[t, v, 1]) + s1 / m
+        out[r, 2] = np.float64(entering[t, v, 2]) + s2 / m

@@ -523,6 +523,44 @@ def test_a_point_keeps_its_side_of_a_limb_from_frame_to_frame_within_a_motion():
         repair_layers([points], body, faces, [0.002], segments=[3, 2])
 
 
+def test_neighbours_leave_a_thin_part_on_one_side():
+    """The final stage keeps neighbours together (``repair._keep_together``): a strip of cloth (2 x 6
+    vertices, 1 cm apart) inside a slab 6 cm thick, 2 mm above its middle but for its last column,
+    2 mm below. Each point alone takes its nearest way out and the strip tears 6 cm across the
+    slab; kept together, the last column goes out on its neighbours' side, 4 mm farther (within
+    KEEP_M), and no edge stretches."""
+    from inference import repair
+    from inference.repair import repair_layers
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    body, body_faces = (s.vertices * [0.5, 0.03, 0.5]).astype(np.float32)[None, None], np.asarray(s.faces)
+    cols = 6
+    grid = np.zeros((2, cols, 3), np.float32)
+    grid[..., 0] = 0.0123 + 0.01 * np.arange(cols)  # off the verticals through the slab's vertices
+    grid[..., 2] = [[0.0071], [0.0171]]
+    grid[..., 1] = 0.002
+    grid[:, -1, 1] = -0.002
+    points = grid.reshape(1, 1, -1, 3)
+    quads = [(r * cols + c, r * cols + c + 1, (r + 1) * cols + c + 1, (r + 1) * cols + c) for r in range(1) for c in range(cols - 1)]
+    faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
+    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+    growth = lambda x: (np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)  # noqa: E731
+                        - np.linalg.norm(points[0, 0, edges[:, 0]] - points[0, 0, edges[:, 1]], axis=1)).max()
+    passes = repair.KEEP_PASSES
+    try:
+        repair.KEEP_PASSES = 0  # each point alone
+        alone = repair_layers([points], body, body_faces, [0.002], faces=[faces])[0][0][0, 0]
+    finally:
+        repair.KEEP_PASSES = passes
+    np.testing.assert_array_equal(np.sign(alone[:, 1]).reshape(2, cols), [[1] * (cols - 1) + [-1]] * 2)
+    assert growth(alone) > 0.05
+    kept, left = repair_layers([points], body, body_faces, [0.002], faces=[faces])
+    kept = kept[0][0, 0]
+    assert left == 0 and not winding_numbers(kept[None], body[0], body_faces).any()
+    assert (kept[:, 1] > 0.03).all()  # every point out on the upper side
+    assert growth(kept) < 0.002
+
+
 def test_an_inner_point_left_on_its_skin_vertex_moves_off_it():
     """The layer stage can put an inner point on its anchor (half-way under an outer layer that
     crosses at the skin); on the surface a ray's inside test is a tie, so the final stage moves it
