@@ -77,7 +77,9 @@ def phenotypes(name: str) -> dict[str, float]:
     values = BODIES[name] if name in BODIES else np.array([float(x) for x in name.split(",")])
     if len(values) != len(PHENOTYPES):
         raise SystemExit(f"body {name!r}: a name of {sorted(BODIES)} or {len(PHENOTYPES)} numbers")
-    return dict(zip(PHENOTYPES, (float(v) for v in values)))
+    # a float32 value as its shortest decimal (0.77 stays 0.77: its float64 widening, 0.76999998..., is
+    # below the service's adult age bound)
+    return dict(zip(PHENOTYPES, (float(str(np.float32(v))) for v in values)))
 
 
 def garment_row(vertices: np.ndarray, body: np.ndarray, body_faces: np.ndarray, asset, method: str) -> dict:
