@@ -56,10 +56,11 @@ Between neighbours: each point's nearest way out is chosen alone too, so where t
 overlap (an arm sunk into the flank, a heavy body's thighs) neighbouring points can leave on
 opposite sides and the edge between them stretches across the part (4-9 cm on the validation
 walk). Before the hold, a moved point at an edge stretched by more than KEEP_STRETCH_M takes the
-free target nearest to where its mesh neighbours would carry it, if that costs at most KEEP_M more
-(``_keep_together``). On the validation walk (02_02, 75 frames, five bodies, every garment and
-four outfits) the torn edge-frames (both ends moved, the edge 1 cm and 3x longer than it came)
-fall by 27 %, with as many frame-to-frame jumps as before (docs/benchmarks.md, session 45).
+free target (or neighbour's place) nearest to where its mesh neighbours would carry it, if that
+costs at most KEEP_M more (``_keep_together``). On the validation walk (02_02, 75 frames, five
+bodies, every garment and four outfits) the torn edge-frames (both ends moved, the edge 1 cm and
+3x longer than it came) fall by 38 %, the frame-to-frame jumps by 11 % (docs/benchmarks.md,
+session 45).
 
 (a point with no outside target among them tries FAR_FACTOR times more candidates; one with
 none there either stays where it is, is counted and logged). The targets lie on the outer surface
@@ -427,9 +428,11 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
     layers where ``accept`` is given) at most KEEP_M farther from it than the one it took, and that
     one, the one nearest to where its neighbours would carry it,
 
-        d_i = mean over the mesh neighbours j of (p'_j + e_i - e_j),   e: the points as they came,
+        d_i = mean over the mesh neighbours j of (p'_j + e_i - e_j),   e: the points as they came;
 
-    in up to KEEP_PASSES rounds (a round's choices change the next one's d). It runs before
+    its free targets include each neighbour's place so carried, p'_j + e_i - e_j, so that a point
+    can follow a neighbour to its side where none of its own skin vertices' targets lies there.
+    In up to KEEP_PASSES rounds (a round's choices change the next one's d). It runs before
     ``_hold_sides``, which then keeps the points' sides from frame to frame. Returns the points moved."""
     T, N = Pb.shape[:2]
     E = mesh_edges(faces)
@@ -439,6 +442,7 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
     slot = np.full(len(frame), -1, np.int64)  # a row's place in the kept targets (found once)
     kept_t = np.zeros((0, 2 * k, 3), Pb.dtype)
     kept_near = np.zeros((0, 2 * k), bool)
+    kept_reach = np.zeros(0)  # how far from p a row may go: its first move + KEEP_M
     asked = np.zeros((0, 3))  # the d_i each row was last tested for
     P32, E32 = np.ascontiguousarray(Pb), np.ascontiguousarray(entering)
     for _ in range(KEEP_PASSES):
@@ -475,15 +479,23 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
             Pb[fn, vn] = p  # the targets are p's
             targets = _posed_targets(Pb, Bb, fn, vn, skin_ids, skin_faces, margin_m, k, trees)  # (n, 2k, 3)
             Pb[fn, vn] = had
-            near = np.linalg.norm(targets - p[:, None], axis=-1) <= (np.linalg.norm(had - p, axis=1) + KEEP_M)[:, None]
+            reach = np.linalg.norm(had - p, axis=1) + KEEP_M
+            near = np.linalg.norm(targets - p[:, None], axis=-1) <= reach[:, None]
             slot[new] = len(kept_t) + np.arange(len(new))
             kept_t, kept_near = np.concatenate([kept_t, targets]), np.concatenate([kept_near, near])
+            kept_reach = np.concatenate([kept_reach, reach])
             asked = np.concatenate([asked, np.zeros((len(new), 3))])
         asked[slot[rows]] = want
         cur = Pb[f, v]
         # a target too far is replaced by the point's place, which is free: the nearest free one to d_i
         # of the others and the place itself
         options = np.where(kept_near[slot[rows]][..., None], kept_t[slot[rows]], cur[:, None])
+        # and each neighbour's place carried by the offset between them (following it to its side),
+        # within the same reach
+        carried = _neighbour_places(Pb, entering, f, v, adj, cur)
+        carried = np.where((np.linalg.norm(carried - start[rows][:, None], axis=-1) <= kept_reach[slot[rows], None])[..., None], carried,
+                           cur[:, None])
+        options = np.concatenate([options, carried.astype(options.dtype)], 1)
         # one compiled pass, nearest to d_i first; an inner layer's choice must lie under the outer
         # layers: a refused one is struck off and the pass asked again (a few times at most)
         best = grid.first_outside(want, options, f, mesh)
@@ -509,6 +521,18 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
         if not better.any():
             break
     return total
+
+
+def _neighbour_places(Pb, entering, f, v, adj: sp.csr_matrix, fill: np.ndarray) -> np.ndarray:
+    """Each point's (frame f, vertex v) mesh neighbours' places carried by the offset between them as
+    they came, p'_j + e_v - e_j: (n, most neighbours, 3), rows padded with ``fill`` (n, 3)."""
+    deg = np.diff(adj.indptr)[v]
+    out = np.repeat(fill[:, None], int(deg.max(initial=0)), 1)
+    owner = np.repeat(np.arange(len(v)), deg)
+    col = np.arange(deg.sum()) - np.repeat(np.cumsum(deg) - deg, deg)
+    nb = adj.indices[np.repeat(adj.indptr[v], deg) + col]
+    out[owner, col] = Pb[f[owner], nb] - entering[f[owner], nb] + entering[f[owner], v[owner]]
+    return out
 
 
 @per_array
