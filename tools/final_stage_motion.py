@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from inference.body import BodyModel  # noqa: E402
 from inference.garment import GarmentCatalog  # noqa: E402
+from inference.mesh import mesh_edges  # noqa: E402
 from inference.metrics import skin_crossings  # noqa: E402
 from inference.options import DrapeOptions  # noqa: E402
 from inference.pipeline import PoseSequence, drape  # noqa: E402
@@ -38,8 +39,7 @@ POP_M = 0.03
 
 
 def edges(faces: np.ndarray) -> np.ndarray:
-    f = np.asarray(faces)
-    return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    return mesh_edges(np.asarray(faces))
 
 
 def row(after: np.ndarray, before: np.ndarray, faces: np.ndarray, body: np.ndarray, body_faces: np.ndarray) -> dict[str, float]:

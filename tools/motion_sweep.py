@@ -35,6 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from inference.intersections import layer_intersections  # noqa: E402
+from inference.mesh import mesh_edges  # noqa: E402
 from inference.metrics import inside_mask, layer_beyond_pct  # noqa: E402
 from service.config import Settings  # noqa: E402
 from service.runtime import Runtime  # noqa: E402
@@ -84,7 +85,7 @@ def phenotypes(name: str) -> dict[str, float]:
 
 def garment_row(vertices: np.ndarray, body: np.ndarray, body_faces: np.ndarray, asset, method: str) -> dict:
     faces = asset.faces
-    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1), axis=0)
+    edges = mesh_edges(faces)
     rest = np.linalg.norm(asset.vertices[edges[:, 1]] - asset.vertices[edges[:, 0]], axis=-1)
     stretch = np.linalg.norm(vertices[:, edges[:, 1]] - vertices[:, edges[:, 0]], axis=-1) / np.maximum(rest, 1e-9)
     step = np.linalg.norm(np.diff(vertices, axis=0), axis=-1) if len(vertices) > 1 else np.zeros((1, 1))
