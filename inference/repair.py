@@ -442,6 +442,7 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
     slot = np.full(len(frame), -1, np.int64)  # a row's place in the kept targets (found once)
     kept_t = np.zeros((0, 2 * k, 3), Pb.dtype)
     kept_near = np.zeros((0, 2 * k), bool)
+    kept_known = np.zeros((0, 2 * k), np.int8)  # their verdicts so far: 0 outside, 1 inside, -1 not counted
     kept_reach = np.zeros(0)  # how far from p a row may go: its first move + KEEP_M
     asked = np.zeros((0, 3))  # the d_i each row was last tested for
     P32, E32 = np.ascontiguousarray(Pb), np.ascontiguousarray(entering)
@@ -483,6 +484,7 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
             near = np.linalg.norm(targets - p[:, None], axis=-1) <= reach[:, None]
             slot[new] = len(kept_t) + np.arange(len(new))
             kept_t, kept_near = np.concatenate([kept_t, targets]), np.concatenate([kept_near, near])
+            kept_known = np.concatenate([kept_known, np.full(near.shape, -1, np.int8)])
             kept_reach = np.concatenate([kept_reach, reach])
             asked = np.concatenate([asked, np.zeros((len(new), 3))])
         asked[slot[rows]] = want
@@ -496,9 +498,14 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
         carried = np.where((np.linalg.norm(carried - start[rows][:, None], axis=-1) <= kept_reach[slot[rows], None])[..., None], carried,
                            cur[:, None])
         options = np.concatenate([options, carried.astype(options.dtype)], 1)
+        # the kept targets' verdicts of the rounds before (d_i moves, the targets do not): each is
+        # counted once; a target replaced by the point's place is not known
+        mine = kept_near[slot[rows]]
+        known = np.where(mine, kept_known[slot[rows]], np.int8(-1))
         # one compiled pass, nearest to d_i first; an inner layer's choice must lie under the outer
         # layers: a refused one is struck off and the pass asked again (a few times at most)
-        best = grid.first_outside(want, options, f, mesh)
+        best = grid.first_outside(want, options, f, mesh, known)
+        kept_known[slot[rows]] = np.where(mine, known, np.int8(-1))
         ask = np.arange(len(rows))
         for _ in range(KEEP_CONSENTS if accept is not None else 0):
             ask = ask[(best[ask] >= 0) & ~(options[ask, np.maximum(best[ask], 0)] == cur[ask]).all(1)]
@@ -509,7 +516,13 @@ def _keep_together(Pb, entering, start, frame, idx, faces, grid, mesh, Bb, skin_
             if not len(no):
                 break
             options[no, best[no]] = cur[no]
-            best[no] = grid.first_outside(want[no], options[no], f[no], mesh)
+            struck = no[best[no] < mine.shape[1]]  # a kept target struck off: the place there is not known
+            mine[struck, best[struck]] = False
+            known[struck, best[struck]] = -1
+            known_no = known[no]
+            best[no] = grid.first_outside(want[no], options[no], f[no], mesh, known_no)
+            kept_known[slot[rows[no]]] = np.where(mine[no], known_no, kept_known[slot[rows[no]]])
+            known[no] = known_no
             ask = no
         else:
             if accept is not None and len(ask):  # still refused: the point stays

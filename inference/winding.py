@@ -91,6 +91,8 @@ class _Pool(threading.local):
 
 
 _POOL = _Pool()
+# ``first_outside``'s verdicts when the caller keeps none: no target known
+_NOTHING_KNOWN = np.zeros((0, 0), np.int8)
 
 
 def _topology(faces: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -243,13 +245,19 @@ class WindingGrid:
         return w
 
 
-    def first_outside(self, points: np.ndarray, targets: np.ndarray, frame: np.ndarray, mesh: str = "first") -> np.ndarray:
+    def first_outside(self, points: np.ndarray, targets: np.ndarray, frame: np.ndarray, mesh: str = "first",
+                      known: np.ndarray | None = None) -> np.ndarray:
         """Per point, its nearest target with winding number 0 (``mesh`` as in ``count_at``): points
         (n, 3) float32, targets (n, m, 3) float32, frame (n,) int; nearest by float32 distance, equal
         distances in their column order; each target's ray along its move's side of y (down where
         it lies below its point). Returns (n,) int64 columns, -1 where no target is outside; a
         target beyond the grid's region is counted by the whole mesh's grid, as ``count_at`` does
-        (those points take ``count_at``'s path)."""
+        (those points take ``count_at``'s path).
+
+        known: (n, mk) int8, C-contiguous, the verdicts of each point's first mk targets already
+        counted (0 outside, 1 inside, -1 not known), read and completed in place (the kernel's
+        ``known``): a caller that asks the same targets again (``repair._keep_together``'s rounds)
+        counts each once."""
         if mesh not in ("first", "second", "either") or (mesh != "first" and len(self.coords) < 2):
             raise ValueError(f"mesh {mesh!r} of a grid of {len(self.coords)} vertex set(s)")
         points = np.ascontiguousarray(points, np.float32)
@@ -257,10 +265,13 @@ class WindingGrid:
         frame = np.ascontiguousarray(frame, np.int64)
         if points.ndim != 2 or points.shape[1] != 3 or targets.shape[::2] != (len(points), 3) or frame.shape != points.shape[:1]:
             raise InputShapeError("targets", "(n, m, 3) with points (n, 3) and frame (n,)", targets.shape)
+        if known is not None and (known.dtype != np.int8 or known.ndim != 2 or len(known) != len(points)
+                                  or known.shape[1] > targets.shape[1] or not known.flags.c_contiguous or not known.flags.writeable):
+            raise InputShapeError("known", f"writeable C-contiguous int8 ({len(points)}, <= {targets.shape[1]})", known.shape)
         first, second = (self.coords[-1], self.coords[0]) if mesh == "second" else (self.coords[0], self.coords[-1])
         best = kernels.first_outside(points, targets, frame, first, second, self.faces, self.V, 1.0 / self.h, self.lo, int(self.ncell[0]),
                                      int(self.ncell[1]), self.region, self.bounded, self.start, self.cell_face, self.pair_box,
-                                     mesh == "either")
+                                     mesh == "either", _NOTHING_KNOWN if known is None else known)
         for p in np.flatnonzero(best == -2):  # a target beyond the region: each in order, by count_at
             order = np.argsort(np.linalg.norm(targets[p] - points[p], axis=-1), kind="stable")
             down = targets[p, order, 1] < points[p, 1]

@@ -323,7 +323,8 @@ def count_crossings(points, frame, down, X, X2, faces, V, inv_h, lo, ni, nj, reg
 
 
 @numba.njit(**_JIT)
-def first_outside(points, targets, frame, X, X2, faces, V, inv_h, lo, ni, nj, region, bounded, start, cell_face, pair_box, either):
+def first_outside(points, targets, frame, X, X2, faces, V, inv_h, lo, ni, nj, region, bounded, start, cell_face, pair_box, either,
+                  known):
     """Per point, its nearest target with winding number 0: the targets taken by their float32
     distance to the point, nearest first (equal distances in their own order, as numpy's argsort
     of rows of up to 16), each target's ray along its move's side of y (down where it lies below
@@ -331,9 +332,14 @@ def first_outside(points, targets, frame, X, X2, faces, V, inv_h, lo, ni, nj, re
 
     points  : (n, 3) float32, metres; targets (n, m, 3) float32; frame (n,) int64
     the grid: as ``count_crossings``
+    known   : (n, mk) int8, mk <= m (0: none), the verdicts of the first mk targets already
+              counted: 0 outside, 1 inside (taken or passed over without a count), -1 not known
+              (counted here, and its verdict written in). A closed mesh's winding number is the
+              same along any ray, so a verdict holds whichever side of y it was counted along.
     returns : (n,) int64, the column of the first outside target, -1 where none is, -2 where a
               target tested lies beyond the grid's region (its count is the caller's to finish)
     """
+    mk = known.shape[1]
     n, m = targets.shape[0], targets.shape[1]
     best = np.full(n, -1, np.int64)
     hits = np.empty(_fullest(start), np.int64)
@@ -351,12 +357,19 @@ def first_outside(points, targets, frame, X, X2, faces, V, inv_h, lo, ni, nj, re
             order[k] = t
         for r in range(m):
             t = order[r]
+            if t < mk and known[p, t] >= 0:
+                if known[p, t] == 0:
+                    best[p] = t
+                    break
+                continue
             ty = targets[p, t, 1]
             w = _count_point(np.float64(targets[p, t, 0]), np.float64(targets[p, t, 2]), np.float64(ty), frame[p], not (ty < py),
                                    X, X2, faces, V, inv_h, lo, ni, nj, region, bounded, start, cell_face, pair_box, either, hits)
             if w == UNKNOWN:
                 best[p] = -2
                 break
+            if t < mk:
+                known[p, t] = 0 if w == 0 else 1
             if w == 0:
                 best[p] = t
                 break

@@ -119,6 +119,44 @@ def test_the_first_outside_target_is_the_nearest_outside_one():
     assert grid._whole  # some targets lay beyond the region
 
 
+def test_first_outside_counts_a_known_target_once():
+    """``known``: the verdicts the first call writes give the same answers without a count; a
+    target marked inside is passed over and one marked outside taken, untested."""
+    v, f = _two_spheres()
+    grid = WindingGrid(v[None].astype(np.float32), f)
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1.0, 1.0, (300, 3)).astype(np.float32)
+    targets = (points[:, None] + rng.normal(0.0, 0.6, (300, 12, 3))).astype(np.float32)
+    frame = np.zeros(300, np.int64)
+    plain = grid.first_outside(points, targets, frame)
+    known = np.full((300, 8), -1, np.int8)  # the first 8 columns kept, the last 4 asked afresh
+    np.testing.assert_array_equal(grid.first_outside(points, targets, frame, known=known), plain)
+    counted = known >= 0
+    assert counted.any() and (known[np.arange(300)[plain >= 0][plain[plain >= 0] < 8], plain[(plain >= 0) & (plain < 8)]] == 0).all()
+    free = grid.count_at(targets[:, :8].reshape(-1, 3), np.zeros(300 * 8, np.int64)).reshape(300, 8) == 0
+    np.testing.assert_array_equal(known[counted] == 0, free[counted])  # each verdict the count's
+    again = known.copy()
+    np.testing.assert_array_equal(grid.first_outside(points, targets, frame, known=again), plain)
+    np.testing.assert_array_equal(again, known)  # nothing new to count
+    # the verdicts are read, not counted again: a free target marked inside is passed over, and an
+    # inside one marked outside is taken
+    rows = np.flatnonzero((plain >= 0) & (plain < 8))
+    lied = known.copy()
+    lied[rows, plain[rows]] = 1
+    moved = grid.first_outside(points, targets, frame, known=lied)
+    assert (moved[rows] != plain[rows]).all()
+    lied = np.where(known == 1, np.int8(0), known)
+    order = np.argsort(np.linalg.norm(targets - points[:, None], axis=-1), axis=1, kind="stable")
+    rank = np.argsort(order, axis=1)  # each column's place in its row's order
+    first_lie = np.where(lied == 0, rank[:, :8], 99).min(1)  # the nearest target now called outside
+    want = np.where(first_lie < np.where(plain >= 0, rank[np.arange(300), np.maximum(plain, 0)], 99),
+                    order[np.arange(300), np.minimum(first_lie, 11)], plain)
+    assert (want != plain).any()
+    np.testing.assert_array_equal(grid.first_outside(points, targets, frame, known=lied), want)
+    with pytest.raises(InputShapeError):
+        grid.first_outside(points, targets, frame, known=np.full((300, 13), -1, np.int8))
+
+
 def test_an_accepted_target_deep_in_the_list_is_the_nearest_accepted_outside_one():
     """With an outer layer to respect (``accept``), the final stage takes each point's nearest
     target that is outside and accepted, however far down its list (rounds growing from ROUND)."""
