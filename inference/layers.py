@@ -76,6 +76,11 @@ SPREAD_DECAY = 0.5
 MIN_SINK_COS = 0.2
 # Parts of two layers farther apart than this in their rest forms are not tested against each other.
 CONTACT_M = 0.06
+# ... widened by this where the rest forms are stand-ins: a learned canonical model's frames' mean
+# form (the layers' true rest relation) lies up to 4.4 cm from its static canonical form shaped to
+# the body (p50 1.2, p99 3.6 cm; tshirt, shirt, trousers, leggings in 24 outfit requests, three
+# clips, random bodies), on which its contacts are kept per body (``inference.pipeline``).
+STAND_IN_SLACK_M = 0.05
 # One-ring averages of the sinking directions (``layers_kernels.sink_along_rays``).
 RAY_SMOOTHING = 3
 # A vertex nearer its anchor than this lies on the skin (step (c) with an outer layer crossing at
@@ -302,16 +307,19 @@ class LayerContacts:
         return cls(outer_vertices, inner_faces)
 
     @classmethod
-    def kept(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> "LayerContacts":
-        """``build`` kept under the contents of the rest forms and the identities of the faces
-        arrays (a garment's, never changed in place; the entry holds them, so their ids stay theirs)."""
+    def kept(cls, rest_layers: Sequence[np.ndarray], faces: Sequence[np.ndarray], radius_m: float | None = None) -> "LayerContacts":
+        """``build`` kept under the contents of the rest forms, the identities of the faces arrays
+        (a garment's, never changed in place; the entry holds them, so their ids stay theirs) and
+        the radius (default CONTACT_M)."""
+        radius_m = CONTACT_M if radius_m is None else float(radius_m)
+
         def build():
-            contacts = cls.build(rest_layers, faces)
+            contacts = cls.build(rest_layers, faces, radius_m)
             for a in (*contacts.outer_vertices.values(), *contacts.inner_faces.values()):
                 a.flags.writeable = False  # shared by the requests that hit the entry
             return tuple(faces), contacts
 
-        return _kept(("contacts", tuple(content_key(x) for x in rest_layers), tuple(id(f) for f in faces)), build)[1]
+        return _kept(("contacts", tuple(content_key(x) for x in rest_layers), tuple(id(f) for f in faces), radius_m), build)[1]
 
     @classmethod
     def everywhere(cls, layers: Sequence[np.ndarray], faces: Sequence[np.ndarray]) -> "LayerContacts":

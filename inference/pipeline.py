@@ -52,7 +52,7 @@ from inference.defaults import DefaultMethods, DynamicsMode, FitMode, Method, re
 from inference.errors import InputShapeError, InputValueError
 from inference.garment import GarmentAsset
 from inference.guard import LayerPlans, guard_layers
-from inference.layers import LayerContacts, body_anchors, body_tree, kept_anchors, untangle_layers
+from inference.layers import CONTACT_M, STAND_IN_SLACK_M, LayerContacts, body_anchors, body_tree, kept_anchors, untangle_layers
 from inference.learned import LearnedGarment, LearnedModels, MissingModelError, default_models
 from inference.motion.descriptor import motion_descriptor
 from inference.motion.self_contact import arm_lifter, lift_arms
@@ -291,8 +291,9 @@ def drape(
 
     def run(g: GarmentAsset, m: Method, lg: LearnedGarment | None, h0: np.ndarray | None):
         """One garment's posed frames (1, T, V, 3) by one method, its rest fit (1, V, 3) and
-        skinning weights (V, J) for the guard and the layer stage (None where unused), and the
-        GRU state after the last frame."""
+        skinning weights (V, J) for the guard and the layer stage (None where unused; a learned
+        canonical model's rest fit is its frames' mean form, for the layer stage's anchors, with no
+        weights: the guard plans on its static form), and the GRU state after the last frame."""
         if m.fit == "canonical" and m.dynamics == "learned":
             d = canonical.diffused
             with timer("dynamics"):  # X_t = D(R(beta, gamma_1..t))
@@ -305,9 +306,9 @@ def drape(
                 out = canonical.strain_limit(g)(frames)[None]
             if len(garments) == 1:
                 return out, None, None, h_t
-            with timer("fit"):  # the guard and the layer stage plan on the sequence's mean canonical form
-                Xm = X.mean(0)
-                return out, d.deshaped_to_shaped(Xm, offsets)[None], d.weights(Xm), h_t
+            with timer("fit"):  # the layer stage's anchors on the sequence's mean canonical form (the guard's
+                # plan and the layers' contacts on the static form, once per body: below)
+                return out, d.deshaped_to_shaped(X.mean(0), offsets)[None], None, h_t
         with timer("fit"):
             if m.fit == "canonical":
                 unposed, w = canonical.rest_fit(g, shape.rest_vertices[0])
@@ -348,25 +349,33 @@ def drape(
         # crossings without the check (docs/benchmarks.md, "Outfits: the guard's cost")
         if len(garments) > 1 or not all(m.canonical for m in methods):
             check = options.guard_check and not all(m.canonical for m in methods)
+            # a learned canonical model's rest form follows the motion (its frames' mean form); what
+            # is planned once per body stands in its static canonical form shaped to the body
+            moving = [m.fit == "canonical" and m.dynamics == "learned" for m in methods]
+            with timer("fit"):
+                stand_ins = [canonical.rest_fit(g, shape.rest_vertices[0]) if mv else (u[0], w)
+                             for g, mv, u, w in zip(garments, moving, unposed_fits, weights)]
             with timer("guard"):
                 # Candidates from the rest pose of the shaped body (fit 'none': the neutral template
-                # against the neutral body, the pose its skinning transforms start from). A plan is
-                # kept for the next request where the rest form does not follow the motion (every
-                # fit but a learned canonical model's, whose plan is built on its frames' mean form).
+                # against the neutral body, the pose its skinning transforms start from), kept for
+                # the body's next request: a moving garment's plan on its stand-in (its per-frame
+                # candidates, ``GuardPlan.dynamic_points``, carry the motion; the layers' numbers
+                # are those of a plan on the mean form: docs/benchmarks.md, session 46).
                 rest_body = shape.rest_vertices if options.fit != "none" else neutral.rest_vertices
-                plans = LayerPlans.build(unposed_fits, [g.faces for g in garments], rest_body, body.faces,
-                                         layer_weights=weights, body_weights=body.dense_weights, rings=check,
-                                         between_layers=False,
-                                         reuse=[not (m.fit == "canonical" and m.dynamics == "learned") for m in methods])
+                plans = LayerPlans.build([u[None] for u, _ in stand_ins], [g.faces for g in garments], rest_body, body.faces,
+                                         layer_weights=[w for _, w in stand_ins], body_weights=body.dense_weights, rings=check,
+                                         between_layers=False, reuse=[True] * len(garments))
                 posed = guard_layers(posed, body_vertices, plans, options.margin_m, options.layer_gap_m, check=check)
             skin = plans.skin
             if len(garments) > 1:
                 with timer("layers"):  # each inner layer under the ones outside it (inference.layers)
-                    # kept for the body's next request, but where a rest form follows the motion (a learned canonical model's)
-                    moving = [m.fit == "canonical" and m.dynamics == "learned" for m in methods]
+                    # the anchors on a moving garment's mean form (on its stand-in, the intersecting
+                    # pairs grow by up to 3.4x on 02_02); the rest kept for the body's next request,
+                    # the contacts on the stand-ins within a radius wider by their distance to the mean forms
                     anchors = [body_anchors(u[0], rest_body[0], body_tree(rest_body[0])) if mv else kept_anchors(u[0], rest_body[0])
                                for u, mv in zip(unposed_fits, moving)]
-                    contacts = (LayerContacts.build if any(moving) else LayerContacts.kept)([u[0] for u in unposed_fits], [g.faces for g in garments])
+                    contacts = LayerContacts.kept([u for u, _ in stand_ins], [g.faces for g in garments],
+                                                  CONTACT_M + (STAND_IN_SLACK_M if any(moving) else 0.0))
                     untangled, _ = untangle_layers([p[0] for p in posed], [g.faces for g in garments], anchors, body_vertices[0], body.faces,
                                                    options.layer_gap_m, margins, contacts)
                     posed = [u[None] for u in untangled]
