@@ -130,3 +130,33 @@ def test_chunks_carry_the_final_stages_moves_and_batches_keep_their_motions_apar
     calls.clear()
     drape(body, shape, motion, assets, options, segments=[12, 8])
     assert calls[0][0] == [12, 8] and calls[0][1] is None
+
+
+def test_a_learned_canonical_outfit_plans_once_per_body(runtime, monkeypatch):
+    """The learned canonical T-shirt's rest form follows the motion; its guard plan and the layers'
+    contacts stand on its static canonical form, so a second request of the same body (another
+    window of the clip) builds neither again, while the anchors still follow its frames' mean form."""
+    import inference.guard.layers as guard_layers_module
+    import inference.layers as layers_module
+    from inference.guard.plan import GuardPlan
+
+    body, catalog = runtime.body, runtime.catalog
+    shape = body.shape(np.array([[0.5, 0.8, 0.45, 0.55, 0.5, 0.5]], np.float32))  # an adult no other test plans for
+    rotations, translation = adapt_clip(runtime.clips.load("dance"), body, shape)
+    assets = [catalog.get("tshirt"), catalog.get("jacket")]
+    built, contacts = [], []
+    monkeypatch.setattr(GuardPlan, "build", classmethod(lambda cls, *a, _b=GuardPlan.build.__func__, **k: built.append(1) or _b(cls, *a, **k)))
+    real = layers_module.LayerContacts.build.__func__
+    monkeypatch.setattr(layers_module.LayerContacts, "build", classmethod(lambda cls, *a, **k: contacts.append(1) or real(cls, *a, **k)))
+    results = []
+    for a in (0, 40):
+        motion = PoseSequence(np.ascontiguousarray(rotations[0, a:a + 2]), np.ascontiguousarray(translation[0, a:a + 2]), 30.0)
+        results.append(drape(body, shape, motion, assets, DrapeOptions(), neutral=runtime.neutral_shape))
+        if a == 0:
+            assert [g.method.fit for g in results[0].garments] == ["canonical", "canonical"]
+            assert results[0].garments[0].method.dynamics == "learned"
+            assert len(built) == 2 and len(contacts) == 1  # the first request plans both layers
+    assert len(built) == 2 and len(contacts) == 1  # the second plans nothing
+    assert not np.array_equal(results[0].anchors[0], results[1].anchors[0])  # the T-shirt's mean form moved its anchors
+    np.testing.assert_array_equal(results[0].anchors[1], results[1].anchors[1])
+    assert len(guard_layers_module._PLANS) <= guard_layers_module.PLAN_CACHE_ENTRIES
