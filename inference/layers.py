@@ -180,12 +180,14 @@ class LayerFrames:
             self._grids[t] = _bin_faces(self.verts[t], self.faces, self.cell)
         return self._grids[t]
 
-    def crossings(self, t: int, starts: np.ndarray, ends: np.ndarray, exiting: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Frame t: ``first_crossings`` of the segments starts -> ends (n, 3) against this layer."""
+    def crossings(self, t: int, starts: np.ndarray, ends: np.ndarray, exiting: bool = False,
+                  any_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame t: ``first_crossings`` of the segments starts -> ends (n, 3) against this layer
+        (``any_only``: each segment's walk stops at its first crossing found, ``binned_crossings``)."""
         starts, ends = np.ascontiguousarray(starts, np.float64), np.ascontiguousarray(ends, np.float64)
         if not len(starts) or not len(self.faces):
             return np.zeros(len(starts), np.int32), np.full(len(starts), 2.0), np.full(len(starts), -1, np.int64)
-        return binned_crossings(starts, ends, self.verts[t], self.faces, self.cell, self.grid(t), exiting)
+        return binned_crossings(starts, ends, self.verts[t], self.faces, self.cell, self.grid(t), exiting, any_only)
 
 
 def anchor_crossings(points: np.ndarray, anchors: np.ndarray, outer: np.ndarray | LayerFrames, outer_faces: np.ndarray | None = None,

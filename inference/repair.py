@@ -722,10 +722,13 @@ class _UnderOuter:
         ok = np.ones(len(frame), bool)
         order = np.argsort(frame, kind="stable")
         bounds = np.searchsorted(frame[order], np.arange(self.anchors.shape[0] + 1))
-        for t in np.unique(frame):  # one kernel call per frame and outer layer
+        for t in np.unique(frame):  # one kernel call per frame and outer layer, nearest layer first
             rows = order[bounds[t]:bounds[t + 1]]
             for layer in self.outer:
-                ok[rows] &= layer.crossings(t, self.anchors[t, idx[rows]], targets[rows])[1] > 1.0
+                ok[rows] = layer.crossings(t, self.anchors[t, idx[rows]], targets[rows], any_only=True)[0] == 0
+                rows = rows[ok[rows]]  # a target refused by one layer is not asked of the next
+                if not len(rows):
+                    break
         return ok
 
 

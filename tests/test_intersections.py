@@ -91,3 +91,25 @@ def test_the_box_pre_test_is_the_six_comparisons():
     want = ((lo_b > hi) | (hi_b < lo)).any(1)
     assert want.any() and (~want).any() and ((lo == hi_b) & ~want[:, None]).any()
     assert np.array_equal(got, want)
+
+
+def test_a_walk_that_stops_at_the_first_crossing_tells_the_same_segments_apart():
+    """``binned_crossings(any_only=True)``: the segments that cross a folded surface are the full
+    walk's, each counted once, its crossing one of the segment's; the others are untouched."""
+    from inference.intersections import _bin_faces, binned_crossings
+
+    s = trimesh.creation.icosphere(3)
+    B = np.concatenate([s.vertices, 0.6 * s.vertices])  # two nested spheres: a segment may cross 0-4 times
+    F = np.concatenate([s.faces, s.faces + len(s.vertices)]).astype(np.int64)
+    rng = np.random.default_rng(5)
+    P, Q = rng.uniform(-1.3, 1.3, (2, 4000, 3))
+    h = 0.2
+    grid = _bin_faces(B, F, h)
+    count, first, face = binned_crossings(P, Q, B, F, h, grid, False)
+    c1, f1, face1 = binned_crossings(P, Q, B, F, h, grid, False, True)
+    assert (count >= 2).sum() > 100 and (count == 0).sum() > 100
+    np.testing.assert_array_equal(c1, np.minimum(count, 1))
+    hit = count > 0
+    assert (f1[hit] >= first[hit]).all() and (f1[hit] <= 1.0).all() and (face1[hit] >= 0).all()
+    assert (f1[~hit] == 2.0).all() and (face1[~hit] == -1).all()
+    assert (f1[hit] > first[hit]).any()  # some walks stopped at a crossing other than the nearest
