@@ -100,6 +100,7 @@ from inference.intersections import CELL_EDGES, first_crossings
 from inference.layers import ON_SKIN_M, LayerFrames
 from inference.mesh import _vertex_faces, faces_around, major_components, mesh_edges, per_array
 from inference.winding import FRAME_BLOCK, WindingGrid, inflated, ray_down
+from inference.winding_kernels import median_edge
 
 log = logging.getLogger(__name__)
 
@@ -677,7 +678,7 @@ def _sink_under_moved(P: np.ndarray, body: np.ndarray, body_faces: np.ndarray, o
         Fb = np.ascontiguousarray(faces[near], np.int64)
         B = np.ascontiguousarray(outer_after[t], np.float64)
         if h is None:
-            h = CELL_EDGES * max(float(np.median(np.linalg.norm(B[faces[:, 1]] - B[faces[:, 0]], axis=1))), 1e-6)
+            h = CELL_EDGES * max(float(median_edge(B, np.ascontiguousarray(faces, np.int64), 1)), 1e-6)  # compiled: numpy's median, bitwise
         a = np.ascontiguousarray(body[t, anchors], np.float64)
         p = np.ascontiguousarray(P[t], np.float64)
         _, first, face = first_crossings(a, p, B, Fb, h, False)
