@@ -114,10 +114,23 @@ REPAIR_CANDIDATES = 32
 NEAR_CANDIDATES = 8
 # Points with no outside target among those try this many times more (not needed on 02_02).
 FAR_FACTOR = 16
+# An inner layer's point with no target under the outer layers among its REPAIR_CANDIDATES looks
+# among its far ones for one no farther than this, before it takes its nearest outside one of them:
+# a farther one tore the cloth (in 48 random service requests, 6 of the 8 vertex-frames it changes
+# have a shorter longest edge, 8-9 -> 3-4 cm, 2 a longer one, 3.5-4.9 -> 4.4-5.8 cm), and walking
+# all 1,024 far targets in rounds was the slowest 1-frame T-shirt + jacket requests' costliest
+# step (~4.4 ms of ~59; ~1 ms bounded). The validation layer metrics (tools/outfit_layers.py) do
+# not change at 5 cm, nor with no far look at all, which changes 8x more vertex-frames.
+FAR_ACCEPT_M = 0.05
 # Half-width added around a frame's points inside for the skin vertices of their local grid
 # (_posed_targets): the 32nd nearest skin vertex of a point inside the T-shirt's posed body lies
 # 4.9 cm away (median; p99 8.5 cm, 30 frames of the heavy body on 02_02).
 NEAR_BOX_M = 0.1
+# ... and for the far look (more than REPAIR_CANDIDATES): the 512th nearest skin vertex of a point
+# lies farther than NEAR_BOX_M (none of 304 far points of 120 1-frame crop top + shirt + jacket
+# requests found its 512 there, each asking a KD-tree of its frame's whole skin, ~3.7 ms to
+# build), within 0.2 m for 303 of them (0.8 ms a call).
+FAR_BOX_M = 0.2
 # Cell side of the grid of a frame's nearby skin vertices (``repair_kernels.frame_knn``): about two
 # vertex spacings of the anny body, so that a point's 8 nearest lie in its own and the next cells.
 KNN_CELL_M = 0.02
@@ -215,7 +228,8 @@ def repair_layers(
     order: the layers' body anchors and faces (``LayerOrder``), for an outfit whose layer stage
     has put each inner layer under the outer ones: the layers are then repaired from the outside
     in, and an inner point takes its nearest outside target whose anchor segment crosses no outer
-    layer, if any of its candidates is one (else its nearest outside target: the body first).
+    layer, if any of its candidates is one (of its far candidates, one within FAR_ACCEPT_M; else
+    its nearest outside target: the body first).
 
     clearance_m: the outermost layer's test runs against the body inflated by this much along
     its vertex normals, so its points closer to the skin than it move too (default CLEARANCE_M; 0
@@ -285,6 +299,7 @@ def repair_layers(
         grid = (WindingGrid(inflated(Bv[sl], body_faces, clearance_m), body_faces, second=Bv[sl], region=region)
                 if clearance_m > 0.0 else WindingGrid(Bv[sl], body_faces, region=region))
         before = [o[sl].copy() for o in out]  # the layers as they came to this stage
+        trees: dict[int, cKDTree] = {}  # the posed skin's KD-tree per frame, built once for every layer
         for i in range(len(out) - 1, -1, -1):  # outside in: an inner layer's targets see the outer layers' final places
             Pb = out[i][sl]  # a view: the moves write into out[i]
             mesh = meshes[i]
@@ -305,17 +320,19 @@ def repair_layers(
                 continue
             ok = np.zeros(len(frame), bool)
             start = Pb[frame, idx]
-            trees: dict[int, cKDTree] = {}  # the posed skin's KD-tree per frame, built once
             under = None
             if order is not None and i < len(out) - 1:
                 under = _UnderOuter(Bv[sl, order.anchors[i]], [LayerFrames(out[j][sl], order.faces[j]) for j in range(i + 1, len(out))])
-            passes = [(kk, under) for kk in (min(NEAR_CANDIDATES, k), k, far)]
-            if under is not None:  # no candidate under the outer layers: the nearest outside one
-                passes.append((far, None))
-            for kk, accept in passes:  # deep in an overlap every near target is inside too: look farther
+            for kk in (min(NEAR_CANDIDATES, k), k, far):  # deep in an overlap every near target is inside too: look farther
                 rem = np.flatnonzero(~ok)
                 targets = _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, offsets[i], kk, trees)
-                ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets, accept)
+                ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets, under,
+                                        reach_m=FAR_ACCEPT_M if under is not None and kk == far else None)
+                if under is not None and kk == far and not ok.all():
+                    # no candidate under the outer layers: the nearest outside one of the same targets
+                    # (the points that found none have not moved)
+                    miss = np.flatnonzero(~ok[rem])
+                    ok[rem[miss]] = _move_outside(Pb, grid, mesh, frame[rem[miss]], idx[rem[miss]], targets[miss])
                 if ok.all():
                     break
             held = ok.copy()
@@ -587,7 +604,8 @@ def _region(layers: list[np.ndarray]) -> np.ndarray:
 def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees: dict) -> np.ndarray:
     """Targets (n, k, 3) on the k posed skin vertices nearest to each point.
 
-    Per frame, a grid of the skin vertices within NEAR_BOX_M of the box of the frame's points
+    Per frame, a grid of the skin vertices within NEAR_BOX_M (FAR_BOX_M for more than
+    REPAIR_CANDIDATES) of the box of the frame's points
     answers every point whose k-th neighbour is nearer than the box's side
     (``inference.repair_kernels.frame_knn``: the same neighbours as the whole skin's). The others
     ask the whole skin's tree of their frame, built once per frame and kept in ``trees`` for the
@@ -597,7 +615,8 @@ def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees:
     frames, counts = np.unique(frame[order], return_counts=True)
     starts = np.concatenate([[0], np.cumsum(counts)])
     nn, found = kernels.frame_knn(np.ascontiguousarray(Bb, np.float32), frames.astype(np.int64), starts,
-                                  np.ascontiguousarray(q[order], np.float64), skin_ids, k, NEAR_BOX_M, KNN_CELL_M)
+                                  np.ascontiguousarray(q[order], np.float64), skin_ids, k,
+                                  NEAR_BOX_M if k <= REPAIR_CANDIDATES else FAR_BOX_M, KNN_CELL_M)
     ids = np.empty((len(frame), k), np.int64)
     ids[order] = nn
     todo = order[~found]
@@ -733,10 +752,11 @@ class _UnderOuter:
         return ok
 
 
-def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None) -> np.ndarray:
+def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None, reach_m=None) -> np.ndarray:
     """Move points (frame, idx) of the block Pb (in place) to their nearest outside target of
-    ``targets`` (n, k, 3) that ``accept(frame, idx, targets) -> bool`` takes, if given; returns
-    (n,) bool, True where one was found."""
+    ``targets`` (n, k, 3) that ``accept(frame, idx, targets) -> bool`` takes, if given, and no
+    farther than ``reach_m`` from the point (with ``accept``; None: any distance); returns (n,)
+    bool, True where one was found."""
     k = targets.shape[1]
     if accept is None:  # one compiled pass: each point's targets nearest first, to the first outside one
         best = grid.first_outside(Pb[frame, idx], targets, frame, mesh)
@@ -746,26 +766,32 @@ def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None) -> np.ndarra
     # test the targets nearest first, ROUND per point at a time, then twice as many each round, in
     # the block's grid (each against its own frame): the first outside one is the nearest outside
     # one (equal distances in column order), whatever the rounds' sizes
-    order = np.argsort(np.linalg.norm(targets - Pb[frame, idx][:, None], axis=-1), axis=1, kind="stable")
+    dist = np.linalg.norm(targets - Pb[frame, idx][:, None], axis=-1)
+    order = np.argsort(dist, axis=1, kind="stable")
+    within = np.full(len(frame), k)  # per point, how many of its nearest targets lie within reach
+    if reach_m is not None:
+        within = (dist <= reach_m).sum(1)
+        k = int(within.max(initial=0))
     best = np.full(len(frame), -1)
-    pending = np.arange(len(frame))
+    pending = np.flatnonzero(within > 0)
     r0, size = 0, ROUND
-    while r0 < k:
+    while r0 < k and len(pending):
         cols = order[pending, r0:r0 + size]
-        r0, size = r0 + size, 2 * size
+        m = cols.shape[1]
         tried = targets[pending[:, None], cols].reshape(-1, 3)
+        fr, at = np.repeat(frame[pending], m), np.flatnonzero((r0 + np.arange(m) < within[pending, None]).ravel())  # within reach
         # each target's ray along its move's side of y: it leaves the body at once
-        down = tried[:, 1] < np.repeat(Pb[frame[pending], idx[pending], 1], cols.shape[1])
-        outside = grid.count_at(tried, np.repeat(frame[pending], cols.shape[1]), mesh, down) == 0
+        down = tried[at, 1] < np.repeat(Pb[frame[pending], idx[pending], 1], m)[at]
+        outside = np.zeros(len(tried), bool)
+        outside[at] = grid.count_at(tried[at], fr[at], mesh, down) == 0
         if accept is not None and outside.any():
             at = np.flatnonzero(outside)
-            outside[at] = accept(np.repeat(frame[pending], cols.shape[1])[at], np.repeat(idx[pending], cols.shape[1])[at], tried[at])
+            outside[at] = accept(fr[at], np.repeat(idx[pending], m)[at], tried[at])
         outside = outside.reshape(cols.shape)
         hit = outside.any(1)
         best[pending[hit]] = cols[hit, outside[hit].argmax(1)]
-        pending = pending[~hit]
-        if not len(pending):
-            break
+        r0, size = r0 + size, 2 * size
+        pending = pending[~hit & (within[pending] > r0)]
     ok = best >= 0
     Pb[frame[ok], idx[ok]] = targets[np.flatnonzero(ok), best[ok]]
     return ok

@@ -191,6 +191,16 @@ def test_an_accepted_target_deep_in_the_list_is_the_nearest_accepted_outside_one
     np.testing.assert_array_equal(Pb[frame[moved], idx[moved]], targets[moved, want[moved]])
     np.testing.assert_array_equal(Pb[frame[:10], idx[:10]], points[:10])  # no accepted target: left where it was
     assert (deep[moved] > 100).sum() > 50  # many found theirs past the first 100 candidates
+    # within a reach: the nearest accepted outside target no farther than it, or none
+    reach = 0.9
+    Pb[frame, idx] = points
+    near = ok_cols & (np.linalg.norm(targets - points[:, None], axis=-1) <= reach)
+    want_near = np.where(near.any(1), np.argmin(np.where(near, rank, k), axis=1), -1)
+    got = _move_outside(Pb, grid, "first", frame, idx, targets, accept, reach_m=reach)
+    np.testing.assert_array_equal(got, want_near >= 0)
+    moved = np.flatnonzero(want_near >= 0)
+    np.testing.assert_array_equal(Pb[frame[moved], idx[moved]], targets[moved, want_near[moved]])
+    assert ((want >= 0) & (want_near < 0)).sum() > 20 and (want_near != want)[want_near >= 0].sum() == 0
 
 
 def test_the_compiled_targets_are_the_numpy_ones():
