@@ -205,7 +205,7 @@ def test_guard_check_is_on_by_default_and_optional(client):
     retarget = {"fit": "retarget", "dynamics": "none"}  # a posed-space garment: the guard's pushes run (not a lone canonical one)
     checked, versions = run({**retarget, "guard_exact": False})
     plain, versions_off = run({**retarget, "guard_check": False, "guard_exact": False})
-    assert versions["guard"] == "plane-push-v4" and versions_off["guard"] == "plane-push-v3"
+    assert versions["guard"] == "plane-push-v5" and versions_off["guard"] == "plane-push-v4"
     # the check moves the vertices the plane push left inside the body, and only those
     moved = np.linalg.norm(checked - plain, axis=-1) > 0
     assert 0 < moved.mean() < 0.01
@@ -229,7 +229,7 @@ def test_exact_repair_leaves_no_vertex_inside_the_body_by_default(client):
     retarget = {"fit": "retarget", "dynamics": "none"}
     repaired, inside, versions = run(retarget)
     plain, inside_off, versions_off = run({**retarget, "guard_exact": False})
-    assert versions["repair"] == "winding-repair-v4" and versions_off["repair"] == "none"
+    assert versions["repair"] == "winding-repair-v5" and versions_off["repair"] == "none"
     assert inside_off.sum() > 0  # the guard alone leaves a few vertices in the body's folds
     assert inside.sum() == 0
     assert run({})[1].sum() == 0  # the garment's default method too
