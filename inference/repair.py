@@ -131,6 +131,12 @@ NEAR_BOX_M = 0.1
 # requests found its 512 there, each asking a KD-tree of its frame's whole skin, ~3.7 ms to
 # build), within 0.2 m for 303 of them (0.8 ms a call).
 FAR_BOX_M = 0.2
+# ... in cells of this side (~25 skin vertices each), and a point's search stops at FAR_BOX_M: where
+# a body folds onto itself (a light, tall body bending forward on CMU 02_06, its belly in its
+# thighs), ~175 T-shirt points a frame ask their 512 nearest from deep in the overlap, and reading
+# 2 cm cells out to the whole box cost ~0.4 ms a point (T-shirt + jacket: 195 -> 135 ms a frame,
+# 0.04 and 0.1 m within 7 % of 0.06)
+FAR_CELL_M = 0.06
 # Cell side of the grid of a frame's nearby skin vertices (``repair_kernels.frame_knn``): about two
 # vertex spacings of the anny body, so that a point's 8 nearest lie in its own and the next cells.
 KNN_CELL_M = 0.02
@@ -614,9 +620,11 @@ def _posed_targets(Pb, Bb, frame, idx, skin_ids, skin_faces, margin_m, k, trees:
     order = np.argsort(frame, kind="stable")
     frames, counts = np.unique(frame[order], return_counts=True)
     starts = np.concatenate([[0], np.cumsum(counts)])
+    # (the far look: each point's search stops where its cells cover the box's pad; a point whose
+    # k-th nearest lies beyond asks the tree)
+    pad, cell, radius = (NEAR_BOX_M, KNN_CELL_M, np.inf) if k <= REPAIR_CANDIDATES else (FAR_BOX_M, FAR_CELL_M, FAR_BOX_M)
     nn, found = kernels.frame_knn(np.ascontiguousarray(Bb, np.float32), frames.astype(np.int64), starts,
-                                  np.ascontiguousarray(q[order], np.float64), skin_ids, k,
-                                  NEAR_BOX_M if k <= REPAIR_CANDIDATES else FAR_BOX_M, KNN_CELL_M)
+                                  np.ascontiguousarray(q[order], np.float64), skin_ids, k, pad, cell, radius)
     ids = np.empty((len(frame), k), np.int64)
     ids[order] = nn
     todo = order[~found]

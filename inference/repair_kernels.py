@@ -12,6 +12,9 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 # ``frame_knn``'s bound is taken this much nearer than computed: a vertex's cell comes from a
 # rounded division, so one a rounding away from a cell's side may be binned across it.
 BOUND_SLACK_M = 1e-9
+# ``frame_knn`` keeps every vertex it reads and sorts them once above this many neighbours, and
+# inserts each into the k best up to it (the final stage asks 8, 32 and 512).
+MANY_K = 64
 
 
 @numba.njit(inline="always", **_JIT)
@@ -55,6 +58,11 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
     sel = np.empty(S, np.int64)
     best_d = np.empty(k)
     best_i = np.empty(k, np.int64)
+    # many neighbours (the final stage's far look, k = 512): the vertices read are kept and sorted
+    # once, where inserting each into the k best shifts up to k of them
+    many = k > MANY_K
+    read_d = np.empty(S if many else 0)
+    read_i = np.empty(S if many else 0, np.int64)
     for a in range(frames.shape[0]):
         b, p0, p1 = frames[a], starts[a], starts[a + 1]
         lo = np.full(3, np.inf)
@@ -105,6 +113,7 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
             box = min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y, z - lo[2], hi[2] - z)
             best_d[:] = np.inf
             best_i[:] = -1
+            nread = 0
             r = 0
             while True:
                 a0, a1 = max(ci - r, 0), min(ci + r, dims[0] - 1)
@@ -121,17 +130,28 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
                                 s = members[t]
                                 dx, dy, dz = pts[s, 0] - x, pts[s, 1] - y, pts[s, 2] - z
                                 d = dx * dx + dy * dy + dz * dz
-                                if d < best_d[k - 1]:
+                                if many:
+                                    read_d[nread] = d
+                                    read_i[nread] = s
+                                    nread += 1
+                                elif d < best_d[k - 1]:
                                     _insert(best_d, best_i, d, s, k)
                 # the cells read hold every vertex nearer than their cube's nearest side
                 reach = min(x - (lo[0] + (ci - r) * h), lo[0] + (ci + r + 1) * h - x,
                             y - (lo[1] + (cj - r) * h), lo[1] + (cj + r + 1) * h - y,
                             z - (lo[2] + (ck - r) * h), lo[2] + (ck + r + 1) * h - z)
                 bound = min(reach, box) - BOUND_SLACK_M
+                if many and nread >= k:
+                    best_d[k - 1] = np.partition(read_d[:nread], k - 1)[k - 1]  # the k-th nearest read so far
                 if best_d[k - 1] <= bound * bound:
                     found[p] = True
-                    for j2 in range(k):
-                        nn[p, j2] = sel[best_i[j2]]
+                    if many:  # nearest first, equal distances in the order read: the insertion's answer
+                        by = np.argsort(read_d[:nread], kind="mergesort")
+                        for j2 in range(k):
+                            nn[p, j2] = sel[read_i[by[j2]]]
+                    else:
+                        for j2 in range(k):
+                            nn[p, j2] = sel[best_i[j2]]
                     break
                 if a0 == 0 and b0 == 0 and c0 == 0 and a1 == dims[0] - 1 and b1 == n1 - 1 and c1 == n2 - 1:
                     break  # the whole box read: the k-th nearest may lie beyond it

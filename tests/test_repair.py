@@ -456,7 +456,7 @@ def test_nearest_skin_vertices_of_the_grid_equal_a_kd_trees():
     k nearest may lie beyond their frame's box."""
     from scipy.spatial import cKDTree
 
-    from inference.repair_kernels import frame_knn
+    from inference.repair_kernels import MANY_K, frame_knn
 
     rng = np.random.default_rng(3)
     v, _ = _two_spheres()
@@ -467,16 +467,30 @@ def test_nearest_skin_vertices_of_the_grid_equal_a_kd_trees():
     order = np.argsort(frame, kind="stable")
     frames, counts = np.unique(frame[order], return_counts=True)
     starts = np.concatenate([[0], np.cumsum(counts)])
-    k = 8
-    for pad in (0.05, 0.3, 5.0):
-        nn, found = frame_knn(verts, frames, starts, q[order], ids, k, pad, 0.1)
-        for p, f in enumerate(frame[order]):
-            dist, want = cKDTree(verts[f, ids].astype(np.float64)).query(q[order][p], k=k)
-            if found[p]:
-                assert np.array_equal(nn[p], ids[want])
-            else:
-                assert dist[-1] > pad  # only a point whose k-th nearest lies beyond the box is left
-        assert found.all() == (pad == 5.0)
+    trees = [cKDTree(verts[f, ids].astype(np.float64)) for f in range(2)]
+    for k in (8, MANY_K + 36):  # an insertion into the k best, and above MANY_K one sort of all read
+        for pad in (0.05, 0.3, 5.0):
+            nn, found = frame_knn(verts, frames, starts, q[order], ids, k, pad, 0.1)
+            for p, f in enumerate(frame[order]):
+                dist, want = trees[f].query(q[order][p], k=k)
+                if found[p]:
+                    assert np.array_equal(nn[p], ids[want])
+                else:
+                    assert dist[-1] > pad  # only a point whose k-th nearest lies beyond the box is left
+            assert found.all() == (pad == 5.0)
+        # a search stopped at a radius leaves the points whose k-th nearest lies beyond it; the
+        # others have the same answer
+        wide = frame_knn(verts, frames, starts, q[order], ids, k, 5.0, 0.1)[0]
+        nn, found = frame_knn(verts, frames, starts, q[order], ids, k, 5.0, 0.1, 0.4)
+        kth = np.array([trees[f].query(q[order][p], k=k)[0][-1] for p, f in enumerate(frame[order])])
+        assert found.any() and not found.all()
+        assert (kth[~found] > 0.4 - 1e-6).all() and np.array_equal(nn[found], wide[found])
+    # equal distances keep the order read in both paths: the first 8 of the many are the 8
+    grid = np.stack(np.meshgrid(*[np.arange(6.0)] * 3, indexing="ij"), -1).reshape(-1, 3).astype(np.float32) * 0.05
+    pts = np.array([[0.125, 0.125, 0.125], [0.1, 0.1, 0.1]])
+    args = (grid[None], np.zeros(1, np.int64), np.array([0, 2], np.int64), pts, np.arange(len(grid), dtype=np.int64))
+    few, many = frame_knn(*args, 8, 1.0, 0.05), frame_knn(*args, MANY_K + 1, 1.0, 0.05)
+    assert few[1].all() and many[1].all() and np.array_equal(many[0][:, :8], few[0])
 
 
 def test_a_skin_mask_gives_the_same_skin_faces_array_each_request():
