@@ -332,13 +332,16 @@ def repair_layers(
             for kk in (min(NEAR_CANDIDATES, k), k, far):  # deep in an overlap every near target is inside too: look farther
                 rem = np.flatnonzero(~ok)
                 targets = _posed_targets(Pb, Bv[sl], frame[rem], idx[rem], skin_ids, skin_faces, offsets[i], kk, trees)
+                fallback = under is not None and kk == far
+                known = np.full(targets.shape[:2], -1, np.int8) if fallback else None
                 ok[rem] = _move_outside(Pb, grid, mesh, frame[rem], idx[rem], targets, under,
-                                        reach_m=FAR_ACCEPT_M if under is not None and kk == far else None)
-                if under is not None and kk == far and not ok.all():
+                                        reach_m=FAR_ACCEPT_M if fallback else None, known=known)
+                if fallback and not ok.all():
                     # no candidate under the outer layers: the nearest outside one of the same targets
-                    # (the points that found none have not moved)
+                    # (the points that found none have not moved), the ones counted above not again
                     miss = np.flatnonzero(~ok[rem])
-                    ok[rem[miss]] = _move_outside(Pb, grid, mesh, frame[rem[miss]], idx[rem[miss]], targets[miss])
+                    ok[rem[miss]] = _move_outside(Pb, grid, mesh, frame[rem[miss]], idx[rem[miss]], targets[miss],
+                                                  known=np.ascontiguousarray(known[miss]))
                 if ok.all():
                     break
             held = ok.copy()
@@ -760,14 +763,17 @@ class _UnderOuter:
         return ok
 
 
-def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None, reach_m=None) -> np.ndarray:
+def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None, reach_m=None, known=None) -> np.ndarray:
     """Move points (frame, idx) of the block Pb (in place) to their nearest outside target of
     ``targets`` (n, k, 3) that ``accept(frame, idx, targets) -> bool`` takes, if given, and no
     farther than ``reach_m`` from the point (with ``accept``; None: any distance); returns (n,)
-    bool, True where one was found."""
+    bool, True where one was found. known: (n, k) int8, C-contiguous, the targets' winding
+    verdicts (0 outside, 1 inside, -1 not counted; ``WindingGrid.first_outside``'s): read without
+    accept, and with it written for the targets counted (before accept's say), so that a second
+    call on the same targets counts none of them again."""
     k = targets.shape[1]
     if accept is None:  # one compiled pass: each point's targets nearest first, to the first outside one
-        best = grid.first_outside(Pb[frame, idx], targets, frame, mesh)
+        best = grid.first_outside(Pb[frame, idx], targets, frame, mesh, known)
         ok = best >= 0
         Pb[frame[ok], idx[ok]] = targets[np.flatnonzero(ok), best[ok]]
         return ok
@@ -792,6 +798,9 @@ def _move_outside(Pb, grid, mesh, frame, idx, targets, accept=None, reach_m=None
         down = tried[at, 1] < np.repeat(Pb[frame[pending], idx[pending], 1], m)[at]
         outside = np.zeros(len(tried), bool)
         outside[at] = grid.count_at(tried[at], fr[at], mesh, down) == 0
+        if known is not None:
+            rows, slots = np.divmod(at, m)
+            known[pending[rows], cols[rows, slots]] = np.where(outside[at], 0, 1)
         if accept is not None and outside.any():
             at = np.flatnonzero(outside)
             outside[at] = accept(fr[at], np.repeat(idx[pending], m)[at], tried[at])

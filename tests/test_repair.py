@@ -201,6 +201,19 @@ def test_an_accepted_target_deep_in_the_list_is_the_nearest_accepted_outside_one
     moved = np.flatnonzero(want_near >= 0)
     np.testing.assert_array_equal(Pb[frame[moved], idx[moved]], targets[moved, want_near[moved]])
     assert ((want >= 0) & (want_near < 0)).sum() > 20 and (want_near != want)[want_near >= 0].sum() == 0
+    # the verdicts an accepting call counts (before accept's say) let a plain call on the same
+    # targets find the same nearest outside ones
+    Pb[frame, idx] = points
+    known = np.full((n, k), -1, np.int8)
+    _move_outside(Pb, grid, "first", frame, idx, targets, accept, reach_m=reach, known=known)
+    counted = known >= 0
+    assert counted.any() and np.array_equal(known[counted] == 0, free[counted])
+    Pb[frame, idx] = points
+    plain = _move_outside(Pb, grid, "first", frame, idx, targets)
+    alone = Pb[frame, idx].copy()
+    Pb[frame, idx] = points
+    np.testing.assert_array_equal(_move_outside(Pb, grid, "first", frame, idx, targets, known=known), plain)
+    np.testing.assert_array_equal(Pb[frame, idx], alone)
 
 
 def test_the_compiled_targets_are_the_numpy_ones():
