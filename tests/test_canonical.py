@@ -67,6 +67,14 @@ def test_canonical_fit_keeps_the_garment_out_of_shaped_bodies_where_the_retarget
     inside_retarget = inside_mask(retarget, shape.rest_vertices, body.faces)[0].mean()
     assert inside <= 0.001 < inside_retarget
     assert np.allclose(weights.sum(1), 1.0, atol=1e-5) and (weights >= 0).all()
+    # kept per garment and body: the same (read-only) fit for an equal body, another for another
+    again, _ = canonical.rest_fit(asset, shape.rest_vertices[0].copy())
+    assert again is fit and not fit.flags.writeable
+    other, _ = canonical.rest_fit(asset, body.shape(np.full((1, 6), 0.5, np.float32)).rest_vertices[0])
+    X, _, S = canonical._static(asset)
+    neutral = canonical.diffused.neutral_vertices
+    np.testing.assert_array_equal(fit, (X + S @ (shape.rest_vertices[0] - neutral)).astype(np.float32))
+    assert not np.array_equal(other, fit)
 
 
 def test_a_lone_canonical_garment_runs_the_exact_stage_alone_and_ends_outside_the_body(setup):
