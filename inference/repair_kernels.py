@@ -63,6 +63,8 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
     many = k > MANY_K
     read_d = np.empty(S if many else 0)
     read_i = np.empty(S if many else 0, np.int64)
+    near_d = np.empty(S if many else 0)
+    near_i = np.empty(S if many else 0, np.int64)
     for a in range(frames.shape[0]):
         b, p0, p1 = frames[a], starts[a], starts[a + 1]
         lo = np.full(3, np.inf)
@@ -141,17 +143,27 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
                             y - (lo[1] + (cj - r) * h), lo[1] + (cj + r + 1) * h - y,
                             z - (lo[2] + (ck - r) * h), lo[2] + (ck + r + 1) * h - z)
                 bound = min(reach, box) - BOUND_SLACK_M
-                if many and nread >= k:
-                    best_d[k - 1] = np.partition(read_d[:nread], k - 1)[k - 1]  # the k-th nearest read so far
-                if best_d[k - 1] <= bound * bound:
+                if many:
+                    # the k nearest are those read no farther than the bound once k of them are:
+                    # sorted, nearest first, equal distances in the order read (the insertion's answer)
+                    b2 = bound * bound
+                    m2 = 0
+                    if nread >= k:
+                        for t2 in range(nread):
+                            if read_d[t2] <= b2:
+                                near_d[m2] = read_d[t2]
+                                near_i[m2] = read_i[t2]
+                                m2 += 1
+                    if m2 >= k:
+                        found[p] = True
+                        by = np.argsort(near_d[:m2], kind="mergesort")
+                        for j2 in range(k):
+                            nn[p, j2] = sel[near_i[by[j2]]]
+                        break
+                elif best_d[k - 1] <= bound * bound:
                     found[p] = True
-                    if many:  # nearest first, equal distances in the order read: the insertion's answer
-                        by = np.argsort(read_d[:nread], kind="mergesort")
-                        for j2 in range(k):
-                            nn[p, j2] = sel[read_i[by[j2]]]
-                    else:
-                        for j2 in range(k):
-                            nn[p, j2] = sel[best_i[j2]]
+                    for j2 in range(k):
+                        nn[p, j2] = sel[best_i[j2]]
                     break
                 if a0 == 0 and b0 == 0 and c0 == 0 and a1 == dims[0] - 1 and b1 == n1 - 1 and c1 == n2 - 1:
                     break  # the whole box read: the k-th nearest may lie beyond it
