@@ -1,10 +1,13 @@
-"""The guard's compiled plane push (``inference.guard.push_kernels``) against the numpy version it
-replaced, kept here as the reference: bitwise the same points."""
+"""The guard's compiled plane push and closest-triangle check (``inference.guard.push_kernels``)
+against the numpy versions they replaced, kept here as the reference: bitwise the same points."""
+import sys
+
 import numpy as np
 import pytest
 
-from inference.guard.constants import _FARTHER_M, _OPPOSING_COS, _SQUEEZE_RADIUS_M, _TANGENT_M
+from inference.guard.constants import _FARTHER_M, _OPPOSING_COS, _SQUEEZE_RADIUS_M, _TANGENT_M, REFINE_CANDIDATES
 from inference.guard.push import _push_block, _screen_tolerance
+from inference.triangles import closest_barycentrics
 
 
 def _numpy_push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reach_m, iterations):
@@ -84,6 +87,79 @@ def _screen_planes(P: np.ndarray, Nrm: np.ndarray, offset: np.ndarray, flat: np.
         t *= P[c]
         s += t
     return s.min(axis=0)
+
+
+def _ring_closest(ap, centre, C, other):
+    """Closest points on ring triangles (centre, b, c): ap = p - centre and centre (3 x arrays
+    broadcasting against other[..., 0]), other (..., 2) flat ids of b and c into C (3, .).
+    Returns barycentrics v, w and p - q (3 x arrays) of other[..., 0]'s shape."""
+    corner = [np.take(C[c], other) for c in range(3)]
+    ab = [corner[c][..., 0] - centre[c] for c in range(3)]
+    ac = [corner[c][..., 1] - centre[c] for c in range(3)]
+    v, w = closest_barycentrics(ap, ab, ac)
+    return v, w, [ap[c] - v * ab[c] - w * ac[c] for c in range(3)]
+
+
+# Ring slots computed for every selected vertex; rings with more triangles get the rest computed
+# for them alone.
+_RING_SLOTS = 6
+
+
+def _numpy_refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, valence: np.ndarray,
+                  M: int, margin_m: float) -> np.ndarray:
+    """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
+    frame-major planes C, Nrm (3, BT*M); ring (M, R, 2) one-ring triangles of the plan vertices
+    and valence (M,) their counts (``GuardPlan.ring``, ``ring_valence``).
+
+    The tangent plane of the nearest vertex misjudges points where the surface curves within a
+    few millimetres (an elbow pit, the crease of an armpit). Among the one-ring triangles of the
+    REFINE_CANDIDATES nearest candidates, the closest point q (``inference.triangles``) and the
+    normal n_q interpolated from the corners' vertex normals (Phong) decide: a point with
+    (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays.
+    Returns (3, L) float32.
+    """
+    k = flat.shape[0]
+    kr = int(min(REFINE_CANDIDATES, k))
+    G = [np.take(C[c], flat) for c in range(3)]
+    d2 = (P[0] - G[0]) ** 2 + (P[1] - G[1]) ** 2 + (P[2] - G[2]) ** 2
+    L = flat.shape[1]
+    near = np.argpartition(d2, kr - 1, axis=0)[:kr] if kr < k else np.arange(k)[:, None].repeat(L, 1)
+    sel = np.take_along_axis(flat, near, 0)  # (kr, L) flat ids f * M + s
+    # the ring triangles (centre, b, c) of each selected vertex, laid out (kr, R, L)
+    other = np.moveaxis(ring[sel % M], 2, 1) + (sel - sel % M)[:, None, :, None]  # (kr, R, L, 2) flat ids
+    centre = [np.take(C[c], sel)[:, None] for c in range(3)]  # (kr, 1, L)
+    ap = [P[c] - centre[c] for c in range(3)]
+    R = other.shape[1]
+    R0 = min(R, _RING_SLOTS)
+    v, w, r = _ring_closest(ap, centre, C, other[:, :R0])  # the first R0 triangles of every ring
+    if R > R0:
+        # slots past a ring's valence repeat its first triangle (``_one_rings``): their results are
+        # slot 0's, so only the rings with more than R0 triangles are computed there
+        v, w = (np.concatenate([a, np.repeat(a[:, :1], R - R0, axis=1)], axis=1) for a in (v, w))
+        r = [np.concatenate([a, np.repeat(a[:, :1], R - R0, axis=1)], axis=1) for a in r]
+        j, col = np.nonzero(valence[sel % M] > R0)
+        if len(j):
+            sub = other[j, R0:, col]  # (E, R - R0, 2)
+            cj = [np.take(C[c], sel[j, col])[:, None] for c in range(3)]
+            vx, wx, rx = _ring_closest([P[c][col][:, None] - cj[c] for c in range(3)], cj, C, sub)
+            v[j, R0:, col], w[j, R0:, col] = vx, wx
+            for c in range(3):
+                r[c][j, R0:, col] = rx[c]
+    best = np.argmin((r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).reshape(-1, L), axis=0)[None]
+    pick = lambda a: np.take_along_axis(np.broadcast_to(a, v.shape).reshape(-1, L), best, 0)[0]  # noqa: E731
+    vb, wb = pick(v), pick(w)
+    ub = 1 - vb - wb
+    rb = [pick(r[c]) for c in range(3)]  # p - q
+    ids = [pick(sel[:, None]), pick(other[..., 0]), pick(other[..., 1])]
+    n = [ub * np.take(Nrm[c], ids[0]) + vb * np.take(Nrm[c], ids[1]) + wb * np.take(Nrm[c], ids[2]) for c in range(3)]
+    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    inside = (rb[0] * n[0] + rb[1] * n[1] + rb[2] * n[2] < 0) & (norm > 0)
+    out = P.copy()
+    if inside.any():
+        scale = margin_m / norm[inside]
+        for c in range(3):  # q + margin n_q, q = p - (p - q)
+            out[c, inside] = P[c, inside] - rb[c][inside] + scale * n[c][inside]
+    return out
 
 
 def _case(rng, L=3000, M=600, k=7):
@@ -199,3 +275,55 @@ def test_the_collider_planes_are_numpys(flip):
     want = _numpy_collider_planes(plan, body[None])
     assert got[0].dtype == got[1].dtype == np.float32
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def _refine_case(rng, L=4000, k=7):
+    # an icosphere's vertices in two frames (the second moved and squashed), with its one-rings;
+    # points within 2 cm of its surface, inside and out; each with its k - 2 nearest vertices of
+    # its frame and two random ones as candidates (frame-major flat ids)
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from inference.guard.plan import _one_rings
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    V, F = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    M = len(V)
+    frames = [V, V * [1.2, 1.0, 0.7] + [0.0, 0.05, 0.0]]
+    C = np.concatenate([f.T for f in frames], 1).astype(np.float32)
+    Nrm = np.concatenate([trimesh.Trimesh(f, F, process=False).vertex_normals.T for f in frames], 1).astype(np.float32)
+    ring, valence = _one_rings(F, M)
+    frame = rng.integers(0, 2, L)
+    P = np.empty((3, L), np.float32)
+    flat = np.empty((k, L), np.int64)
+    for b in range(2):
+        rows = np.flatnonzero(frame == b)
+        u = rng.normal(size=(len(rows), 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        pts = frames[b][rng.integers(0, M, len(rows))] + u * rng.uniform(0.0, 0.02, (len(rows), 1))
+        P[:, rows] = pts.T
+        near = cKDTree(frames[b]).query(pts, k=k - 2)[1].T
+        flat[:, rows] = np.concatenate([near, rng.integers(0, M, (2, len(rows)))]) + b * M
+    return P, C, Nrm, flat, ring, valence, M
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("slots", [6, 3])
+def test_the_compiled_closest_triangle_check_moves_points_as_the_numpy_one(seed, slots, monkeypatch):
+    """``push._refine_block`` (compiled) against its numpy form: the same points moved, to the same
+    places bitwise wherever both took the same candidates (numpy's partial sort orders equal
+    distances its own way; then within a micrometre). With 3 ring slots every ring of the
+    icosphere (valence 5-6) takes the numpy form's overflow path."""
+    from inference.guard.push import _refine_block
+
+    monkeypatch.setattr(sys.modules[__name__], "_RING_SLOTS", slots)
+    rng = np.random.default_rng(seed)
+    P, C, Nrm, flat, ring, valence, M = _refine_case(rng)
+    for margin in (0.004, 0.0):
+        ref = _numpy_refine_block(P, C, Nrm, flat, ring, valence, M, margin)
+        got = _refine_block(P, C, Nrm, flat, ring, valence, M, margin)
+        moved = (ref != P).any(0)
+        assert moved.sum() > 200 and (moved == (got != P).any(0)).all()
+        same = (got == ref).all(0)
+        assert same.mean() > 0.99
+        np.testing.assert_allclose(got, ref, atol=1e-6, rtol=0)

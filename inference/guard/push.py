@@ -22,7 +22,6 @@ from inference.guard.constants import (
     _SQUEEZE_RADIUS_M,
     _TANGENT_M,
 )
-from inference.triangles import closest_barycentrics
 
 if TYPE_CHECKING:
     from inference.guard.plan import GuardPlan
@@ -211,22 +210,6 @@ def _push_block(P, C, Nrm, flat, across, M, margin_m, max_push_m, boundary, reac
     return P, np.flatnonzero(live)
 
 
-def _ring_closest(ap, centre, C, other):
-    """Closest points on ring triangles (centre, b, c): ap = p - centre and centre (3 x arrays
-    broadcasting against other[..., 0]), other (..., 2) flat ids of b and c into C (3, .).
-    Returns barycentrics v, w and p - q (3 x arrays) of other[..., 0]'s shape."""
-    corner = [np.take(C[c], other) for c in range(3)]
-    ab = [corner[c][..., 0] - centre[c] for c in range(3)]
-    ac = [corner[c][..., 1] - centre[c] for c in range(3)]
-    v, w = closest_barycentrics(ap, ab, ac)
-    return v, w, [ap[c] - v * ab[c] - w * ac[c] for c in range(3)]
-
-
-# Ring slots computed for every selected vertex; rings with more triangles (valence 7-8: ~13 % of
-# anny's vertices, most have 6) get the rest computed for them alone.
-_RING_SLOTS = 6
-
-
 def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, valence: np.ndarray,
                   M: int, margin_m: float) -> np.ndarray:
     """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
@@ -237,50 +220,17 @@ def _refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarra
     few millimetres (an elbow pit, the crease of an armpit). Among the one-ring triangles of the
     REFINE_CANDIDATES nearest candidates, the closest point q (``inference.triangles``) and the
     normal n_q interpolated from the corners' vertex normals (Phong) decide: a point with
-    (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays.
+    (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays. Compiled,
+    point by point (``push_kernels.refine_points``; the numpy form it replaced, kept in
+    ``tests/test_guard_push_kernel.py``, made ~30 (kr, R, L) temporaries: ~10 ms a frame of
+    leggings + shorts, whose shorts run the check).
     Returns (3, L) float32.
     """
-    k = flat.shape[0]
-    kr = int(min(REFINE_CANDIDATES, k))
-    G = [np.take(C[c], flat) for c in range(3)]
-    d2 = (P[0] - G[0]) ** 2 + (P[1] - G[1]) ** 2 + (P[2] - G[2]) ** 2
-    L = flat.shape[1]
-    near = np.argpartition(d2, kr - 1, axis=0)[:kr] if kr < k else np.arange(k)[:, None].repeat(L, 1)
-    sel = np.take_along_axis(flat, near, 0)  # (kr, L) flat ids f * M + s
-    # the ring triangles (centre, b, c) of each selected vertex, laid out (kr, R, L)
-    other = np.moveaxis(ring[sel % M], 2, 1) + (sel - sel % M)[:, None, :, None]  # (kr, R, L, 2) flat ids
-    centre = [np.take(C[c], sel)[:, None] for c in range(3)]  # (kr, 1, L)
-    ap = [P[c] - centre[c] for c in range(3)]
-    R = other.shape[1]
-    R0 = min(R, _RING_SLOTS)
-    v, w, r = _ring_closest(ap, centre, C, other[:, :R0])  # the first R0 triangles of every ring
-    if R > R0:
-        # slots past a ring's valence repeat its first triangle (``_one_rings``): their results are
-        # slot 0's, so only the rings with more than R0 triangles are computed there
-        v, w = (np.concatenate([a, np.repeat(a[:, :1], R - R0, axis=1)], axis=1) for a in (v, w))
-        r = [np.concatenate([a, np.repeat(a[:, :1], R - R0, axis=1)], axis=1) for a in r]
-        j, col = np.nonzero(valence[sel % M] > R0)
-        if len(j):
-            sub = other[j, R0:, col]  # (E, R - R0, 2)
-            cj = [np.take(C[c], sel[j, col])[:, None] for c in range(3)]
-            vx, wx, rx = _ring_closest([P[c][col][:, None] - cj[c] for c in range(3)], cj, C, sub)
-            v[j, R0:, col], w[j, R0:, col] = vx, wx
-            for c in range(3):
-                r[c][j, R0:, col] = rx[c]
-    best = np.argmin((r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).reshape(-1, L), axis=0)[None]
-    pick = lambda a: np.take_along_axis(np.broadcast_to(a, v.shape).reshape(-1, L), best, 0)[0]  # noqa: E731
-    vb, wb = pick(v), pick(w)
-    ub = 1 - vb - wb
-    rb = [pick(r[c]) for c in range(3)]  # p - q
-    ids = [pick(sel[:, None]), pick(other[..., 0]), pick(other[..., 1])]
-    n = [ub * np.take(Nrm[c], ids[0]) + vb * np.take(Nrm[c], ids[1]) + wb * np.take(Nrm[c], ids[2]) for c in range(3)]
-    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-    inside = (rb[0] * n[0] + rb[1] * n[1] + rb[2] * n[2] < 0) & (norm > 0)
-    out = P.copy()
-    if inside.any():
-        scale = margin_m / norm[inside]
-        for c in range(3):  # q + margin n_q, q = p - (p - q)
-            out[c, inside] = P[c, inside] - rb[c][inside] + scale * n[c][inside]
+    kr = int(min(REFINE_CANDIDATES, flat.shape[0]))
+    out = np.empty(P.shape, np.float32)
+    push_kernels.refine_points(np.ascontiguousarray(P, np.float32), C, Nrm, np.ascontiguousarray(flat, np.int64),
+                               np.ascontiguousarray(ring, np.int32), np.ascontiguousarray(valence, np.int32), int(M), kr,
+                               np.float32(margin_m), out)
     return out
 
 

@@ -158,6 +158,108 @@ def collider_planes(X, faces, face_ids, indptr, indices, data, collider_ids, ori
             points[0, col], points[1, col], points[2, col] = X[b, v, 0], X[b, v, 1], X[b, v, 2]
 
 
+@numba.njit(inline="always", **_JIT)
+def _ratio(num, den):
+    """num / den, 0 where den == 0 (``inference.triangles._ratio``)."""
+    return num / den if den != 0 else np.float32(0.0)
+
+
+@numba.njit(inline="always", **_JIT)
+def _select(mask, new, old):
+    """old + mask (new - old) (``inference.triangles._select``, the same rounding)."""
+    return old + np.float32(mask) * (new - old)
+
+
+@numba.njit(**_JIT)
+def refine_points(P, C, Nrm, flat, ring, valence, M, kr, margin, out):
+    """``push._refine_block``, point by point: P (3, L) float32 pushed points, C and Nrm (3, BT*M)
+    float32 the frames' collider planes, flat (k, L) int64 candidate ids, ring (M, R, 2) int32 and
+    valence (M,) int32 the one-rings (``GuardPlan.ring``), kr the candidates checked, margin float32;
+    out (3, L) float32.
+
+    Per point, its kr nearest candidates (by float32 squared distance, equal ones in candidate
+    order), the closest point q on each one's ring triangles (Ericson §5.1.5 as
+    ``inference.triangles.closest_barycentrics``, its operations in its order), the nearest q over
+    them (the first of equal ones) and the normal n_q interpolated from the corners' vertex
+    normals: a point with (p - q) . n_q < 0 goes to q + margin n_q / |n_q|. Every quantity in float32
+    in numpy's order of operations, so that a point's answer is bitwise the numpy form's wherever
+    both pick the same candidates (numpy's partial sort orders equal distances its own way)."""
+    k, L = flat.shape
+    zero, one = np.float32(0.0), np.float32(1.0)
+    d2 = np.empty(k, np.float32)
+    pick = np.empty(kr, np.int64)
+    for q in range(L):
+        x, y, z = P[0, q], P[1, q], P[2, q]
+        for j in range(k):
+            g = flat[j, q]
+            dx, dy, dz = x - C[0, g], y - C[1, g], z - C[2, g]
+            d2[j] = dx * dx + dy * dy + dz * dz
+        for a in range(kr):  # the kr nearest, nearest first
+            best = -1
+            for j in range(k):
+                taken = False
+                for b in range(a):
+                    if pick[b] == j:
+                        taken = True
+                if not taken and (best < 0 or d2[j] < d2[best]):
+                    best = j
+            pick[a] = best
+        found = False
+        best_r = np.float32(np.inf)
+        bv, bw, r0, r1, r2 = zero, zero, zero, zero, zero
+        ia, ib, ic = 0, 0, 0
+        for a in range(kr):
+            f = flat[pick[a], q]
+            s = f % M
+            base = f - s
+            cx, cy, cz = C[0, f], C[1, f], C[2, f]
+            apx, apy, apz = x - cx, y - cy, z - cz
+            for t in range(max(valence[s], 1)):
+                gb, gc = base + ring[s, t, 0], base + ring[s, t, 1]
+                abx, aby, abz = C[0, gb] - cx, C[1, gb] - cy, C[2, gb] - cz
+                acx, acy, acz = C[0, gc] - cx, C[1, gc] - cy, C[2, gc] - cz
+                d1 = abx * apx + aby * apy + abz * apz
+                dd2 = acx * apx + acy * apy + acz * apz
+                bb = abx * abx + aby * aby + abz * abz
+                bc = abx * acx + aby * acy + abz * acz
+                cc = acx * acx + acy * acy + acz * acz
+                d3, d4, d5, d6 = d1 - bb, dd2 - bc, d1 - bc, dd2 - cc
+                va, vb, vc = d3 * d6 - d5 * d4, d5 * dd2 - d1 * d6, d1 * d4 - d3 * dd2
+                total = va + vb + vc
+                v, w = _ratio(vb, total), _ratio(vc, total)
+                on_bc = (va <= zero) and (d4 >= d3) and (d5 >= d6)
+                t_bc = _ratio(d4 - d3, (d4 - d3) + (d5 - d6))
+                v, w = _select(on_bc, one - t_bc, v), _select(on_bc, t_bc, w)
+                on_ac = (vb <= zero) and (dd2 >= zero) and (d6 <= zero)
+                v, w = v * np.float32(not on_ac), _select(on_ac, _ratio(dd2, dd2 - d6), w)
+                on_ab = (vc <= zero) and (d1 >= zero) and (d3 <= zero)
+                v, w = _select(on_ab, _ratio(d1, d1 - d3), v), w * np.float32(not on_ab)
+                at_c = (d6 >= zero) and (d5 <= d6)
+                v, w = v * np.float32(not at_c), _select(at_c, one, w)
+                at_b = (d3 >= zero) and (d4 <= d3)
+                v, w = _select(at_b, one, v), w * np.float32(not at_b)
+                at_a = (d1 <= zero) and (dd2 <= zero)
+                v, w = v * np.float32(not at_a), w * np.float32(not at_a)
+                rx = apx - v * abx - w * acx
+                ry = apy - v * aby - w * acy
+                rz = apz - v * abz - w * acz
+                dist = rx * rx + ry * ry + rz * rz
+                if not found or dist < best_r:
+                    found = True
+                    best_r, bv, bw, r0, r1, r2 = dist, v, w, rx, ry, rz
+                    ia, ib, ic = f, gb, gc
+        ub = one - bv - bw
+        nx = ub * Nrm[0, ia] + bv * Nrm[0, ib] + bw * Nrm[0, ic]
+        ny = ub * Nrm[1, ia] + bv * Nrm[1, ib] + bw * Nrm[1, ic]
+        nz = ub * Nrm[2, ia] + bv * Nrm[2, ib] + bw * Nrm[2, ic]
+        norm = np.float32(np.sqrt(nx * nx + ny * ny + nz * nz))
+        if r0 * nx + r1 * ny + r2 * nz < zero and norm > zero:
+            scale = margin / norm
+            out[0, q], out[1, q], out[2, q] = x - r0 + scale * nx, y - r1 + scale * ny, z - r2 + scale * nz
+        else:
+            out[0, q], out[1, q], out[2, q] = x, y, z
+
+
 def warm_up() -> None:
     """Compile the kernel (or load numba's cache) on one point and one candidate, with the types
     every call passes (``push._push_block``), so that no request pays the compilation (~1 s)."""
@@ -168,6 +270,9 @@ def warm_up() -> None:
     push_points(P, C, Nrm, np.zeros(1, np.float32), np.zeros((1, 1), np.int64), np.zeros((0, 1), np.int64), np.zeros((0, 0), bool),
                 f32(np.inf), np.zeros(1, bool), 1, f32(0.004), f32(np.inf), np.zeros(0, bool), f32(0.0), 2, f32(1e-4), f32(0.02), f32(-0.5),
                 f32(4e-4))
+    # the closest-triangle check (``push._refine_block``): a plan's rings and valences are int32
+    ring = np.zeros((1, 1, 2), np.int32)
+    refine_points(P, C, Nrm, np.zeros((1, 1), np.int64), ring, np.ones(1, np.int32), 1, 1, f32(0.004), np.empty((3, 1), np.float32))
     # and the collider's planes: a plan's faces are read-only int64 (``collider_topology``), the
     # incidence scipy's int32 CSR of float32 ones
     faces = np.array([[0, 1, 2]], np.int64)
