@@ -150,8 +150,8 @@ def guard_layers(
     layer i: p_i <- guard(p_i, body, margin = body_margin_m + i * layer_gap_m)
              p_i <- guard(p_i, p_j, margin = layer_gap_m) for j = 0 .. i-1 (guarded p_j)
     layers : each (B, T, N_i, 3) float32, metres ; body : (B, T, Vb, 3) float32, metres
-    check  : the closest-triangle check against the body (module docstring; 3-4 ms per
-             garment-frame for 5k vertices)
+    check  : the closest-triangle check against the body (module docstring; compiled, ~1.7 ms per
+             garment-frame of leggings + shorts, ~3.5k vertices each; 5.1 in numpy)
     returns: list of (B, T, N_i, 3) float32
     """
     if len(layers) != len(plans.body):
