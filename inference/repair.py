@@ -120,7 +120,7 @@ FAR_FACTOR = 16
 # have a shorter longest edge, 8-9 -> 3-4 cm, 2 a longer one, 3.5-4.9 -> 4.4-5.8 cm), and walking
 # all 1,024 far targets in rounds was the slowest 1-frame T-shirt + jacket requests' costliest
 # step (~4.4 ms of ~59; ~1 ms bounded). The validation layer metrics (tools/outfit_layers.py) do
-# not change at 5 cm, nor with no far look at all, which changes 8x more vertex-frames.
+# not change at 5 cm, nor with no far look at all, which changes 207 vertex-frames against 8.
 FAR_ACCEPT_M = 0.05
 # Half-width added around a frame's points inside for the skin vertices of their local grid
 # (_posed_targets): the 32nd nearest skin vertex of a point inside the T-shirt's posed body lies
@@ -135,7 +135,7 @@ FAR_BOX_M = 0.2
 # a body folds onto itself (a light, tall body bending forward on CMU 02_06, its belly in its
 # thighs), ~175 T-shirt points a frame ask their 512 nearest from deep in the overlap, and reading
 # 2 cm cells out to the whole box cost ~0.4 ms a point (T-shirt + jacket: 195 -> 135 ms a frame,
-# 0.04 and 0.1 m within 7 % of 0.06)
+# 0.04 and 0.1 m within 7 % of 0.06; ``repair_kernels.MANY_K`` then cut the search itself)
 FAR_CELL_M = 0.06
 # Cell side of the grid of a frame's nearby skin vertices (``repair_kernels.frame_knn``): about two
 # vertex spacings of the anny body, so that a point's 8 nearest lie in its own and the next cells.

@@ -12,8 +12,8 @@ _JIT = {"nogil": True, "cache": True, "fastmath": False}
 # ``frame_knn``'s bound is taken this much nearer than computed: a vertex's cell comes from a
 # rounded division, so one a rounding away from a cell's side may be binned across it.
 BOUND_SLACK_M = 1e-9
-# ``frame_knn`` keeps every vertex it reads and sorts them once above this many neighbours, and
-# inserts each into the k best up to it (the final stage asks 8, 32 and 512).
+# Above this many neighbours ``frame_knn`` keeps every vertex it reads and sorts, once, those
+# within the bound; up to it, it inserts each into the k best (the final stage asks 8, 32 and 512).
 MANY_K = 64
 
 
@@ -58,8 +58,8 @@ def frame_knn(verts, frames, starts, q, ids, k, pad, h, radius=np.inf):
     sel = np.empty(S, np.int64)
     best_d = np.empty(k)
     best_i = np.empty(k, np.int64)
-    # many neighbours (the final stage's far look, k = 512): the vertices read are kept and sorted
-    # once, where inserting each into the k best shifts up to k of them
+    # many neighbours (the final stage's far look, k = 512): the vertices read are kept and those
+    # within the bound sorted once, where inserting each into the k best shifts up to k of them
     many = k > MANY_K
     read_d = np.empty(S if many else 0)
     read_i = np.empty(S if many else 0, np.int64)
