@@ -106,17 +106,9 @@ _RING_SLOTS = 6
 
 
 def _numpy_refine_block(P: np.ndarray, C: np.ndarray, Nrm: np.ndarray, flat: np.ndarray, ring: np.ndarray, valence: np.ndarray,
-                  M: int, margin_m: float) -> np.ndarray:
-    """Closest-triangle check of pushed points: P (3, L), flat (k, L) candidate indices into the
-    frame-major planes C, Nrm (3, BT*M); ring (M, R, 2) one-ring triangles of the plan vertices
-    and valence (M,) their counts (``GuardPlan.ring``, ``ring_valence``).
-
-    The tangent plane of the nearest vertex misjudges points where the surface curves within a
-    few millimetres (an elbow pit, the crease of an armpit). Among the one-ring triangles of the
-    REFINE_CANDIDATES nearest candidates, the closest point q (``inference.triangles``) and the
-    normal n_q interpolated from the corners' vertex normals (Phong) decide: a point with
-    (p - q) . n_q < 0 is inside and moves to q + margin n_q; every other point stays.
-    Returns (3, L) float32.
+                        M: int, margin_m: float) -> np.ndarray:
+    """``push._refine_block`` as numpy over (candidates, ring slots, points) arrays, the form the
+    compiled ``push_kernels.refine_points`` replaced (its arguments and answer).
     """
     k = flat.shape[0]
     kr = int(min(REFINE_CANDIDATES, k))
