@@ -30,7 +30,8 @@ from service.schemas import DrapeRequest, Problem
 log = logging.getLogger(__name__)
 access_log = logging.getLogger("service.access")
 
-API_VERSION = "0.3.0"  # 0.3: options.collisions (the 0.2 guard flags still read), motion.in_place, asf_amc motions
+API_VERSION = "0.4.0"  # 0.4: the request's garment order is the layer order; 0.3: options.collisions (the 0.2 guard flags
+# still read), motion.in_place, asf_amc motions
 
 
 def description(s: Settings) -> str:

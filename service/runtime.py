@@ -205,8 +205,10 @@ class Runtime:
         return self.motions.output_frames(self.motion_spec(request), request.options.fps, limits.motion)
 
     def check_request(self, request: DrapeRequest, limits: RequestLimits | None = None) -> list[GarmentAsset]:
-        """The request's garments in layer order (raises a 422 input error for unknown garment or clip ids,
-        duplicates, too many); cheap, so the API checks it before accepting a job."""
+        """The request's garments in its order, which is the layer order, innermost first (a shirt
+        listed before trousers is tucked into them; the catalog's ``layer`` is only the usual
+        place); raises a 422 input error for unknown garment or clip ids, duplicates, too many.
+        Cheap, so the API checks it before accepting a job."""
         limits = limits or RequestLimits.drape(self.settings)
         ids = [g.id for g in request.garments]
         if len(ids) > limits.max_garments:
@@ -219,8 +221,7 @@ class Runtime:
                 raise InputValueError(f"/garments/{i}/id", f"unknown garment {gid!r}; see GET /v1/garments")
             assets.append(self.catalog.get(gid))
         self.motions.check(self.motion_spec(request), request.options.fps, limits.motion)  # unknown clip, pose frame count
-        # Layer order: the catalog's default layer, then the request's order (stable).
-        return [a for _, _, a in sorted((a.layer, i, a) for i, a in enumerate(assets))] if len(assets) > 1 else assets
+        return assets
 
     def prepare(self, request: DrapeRequest, limits: RequestLimits | None = None) -> PreparedDrape:
         """Validate the request against the catalog and the limits; import its motion."""

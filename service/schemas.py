@@ -104,7 +104,9 @@ class GarmentSpec(_Strict):
 class DrapeRequest(_Strict):
     body: BodySpec = Field(default_factory=BodySpec)
     motion: Motion
-    garments: Annotated[list[GarmentSpec], Len(1, 8)] = Field(description="garments, innermost first (layer order)")
+    garments: Annotated[list[GarmentSpec], Len(1, 8)] = Field(
+        description="garments, innermost first: the layer order, as listed (a shirt listed before trousers is tucked into them; "
+                    "after them, it hangs over them). A garment's catalog layer is its usual place, not enforced")
     format: Literal["glb", "npz"] = "glb"
     options: DrapeOptions = Field(default_factory=DrapeOptions)
 
@@ -145,7 +147,8 @@ class GarmentSummary(BaseModel):
     id: str
     name: str
     category: str
-    layer: int
+    layer: int = Field(description="its usual place in an outfit (0 innermost): a client's default order; a drape keeps the "
+                                   "request's order")
     vertices: int
     faces: int
     template_url: str

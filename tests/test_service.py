@@ -6,7 +6,9 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
+from inference.metrics import layer_violations
 from service.runtime import MODEL_VERSIONS
 from tests.conftest import REPO_ROOT, validate_glb
 
@@ -272,6 +274,33 @@ def test_drape_metadata_names_each_garments_method(client):
     assert r.status_code == 200, r.text
     meta = json.loads(str(np.load(io.BytesIO(r.content), allow_pickle=False)["metadata"]))
     assert meta["model_versions"]["layers"] == MODEL_VERSIONS["layers"]
+
+
+def test_the_request_order_is_the_layer_order(client, runtime):
+    """Garments are layered as listed, innermost first, whatever their catalog layers: a T-shirt
+    listed before the trousers is tucked into them (its waist under theirs), listed after them it
+    hangs over them; the response keeps the request's order."""
+    tshirt, trousers = (runtime.catalog.get(g) for g in ("tshirt", "trousers"))
+    assert tshirt.layer > trousers.layer  # the catalog's usual place: trousers inside
+    drapes = {}
+    for order in (("tshirt", "trousers"), ("trousers", "tshirt")):
+        body = {**WALK_TSHIRT, "garments": [{"id": g} for g in order], "motion": {"type": "clip", "clip": "walk", "duration_s": 0.1},
+                "format": "npz", "options": {"include_body": False}}
+        r = client.post("/v1/drape", json=body)
+        assert r.status_code == 200, r.text
+        npz = np.load(io.BytesIO(r.content), allow_pickle=False)
+        assert [g["name"] for g in json.loads(str(npz["metadata"]))["garments"]] == list(order)
+        drapes[order] = {g: npz[f"garment_{i}_vertices"] for i, g in enumerate(order)}
+    # where the two meet (T-shirt vertices within 2 cm of a trousers vertex): the T-shirt's on the
+    # trousers' outer side (projecting onto them) when it hangs over them, few when tucked in
+    outside = {}
+    for order, v in drapes.items():
+        beyond, _ = layer_violations(v["tshirt"], v["trousers"], trousers.faces)
+        near = np.stack([cKDTree(o).query(t)[0] < 0.02 for t, o in zip(v["tshirt"], v["trousers"])])
+        outside[order] = (int((beyond & near).sum()), int(near.sum()))
+    (tucked, met_tucked), (over, met_over) = outside["tshirt", "trousers"], outside["trousers", "tshirt"]
+    assert met_tucked > 500 and met_over > 500, outside
+    assert over > 0.5 * met_over and tucked < 0.02 * met_tucked, outside
 
 
 def _copy_defaults(tmp_path, **changes):

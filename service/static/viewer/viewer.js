@@ -266,7 +266,8 @@ function showOrder() {
   warning.hidden = inverted < 0;
   if (inverted >= 0) {
     const [outer, inner] = [chosen[inverted - 1], chosen[inverted]];
-    warning.textContent = `${outer.name} (layer ${outer.layer}) is listed inside ${inner.name} (layer ${inner.layer})`;
+    // the service keeps the request's order (a shirt before trousers is tucked in): say what will happen
+    warning.textContent = `${outer.name} (layer ${outer.layer}) is listed inside ${inner.name} (layer ${inner.layer}): it will be draped under it`;
   }
 }
 
