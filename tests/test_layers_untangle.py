@@ -187,3 +187,43 @@ def test_kept_contacts_are_read_only():
     unit, F = np.asarray(s.vertices, np.float32), np.asarray(s.faces, np.int64)
     c = LayerContacts.kept([0.9 * unit, unit], [F, F])
     assert not c.outer_vertices[0, 1].flags.writeable and not c.inner_faces[0, 1].flags.writeable
+
+
+def _turned_fine_sphere(radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """An icosphere finer than the inner layer's and turned, so that no anchor segment meets one of
+    its vertices or edges."""
+    fine = trimesh.creation.icosphere(5)
+    turn = trimesh.transformations.rotation_matrix(0.01, [1.0, 2.0, 3.0])[:3, :3]
+    return (radius * np.asarray(fine.vertices) @ turn.T).astype(np.float32), np.asarray(fine.faces, np.int64)
+
+
+def test_an_inner_layer_closer_than_the_gap_under_the_outer_one_sinks_to_the_gap(spheres):
+    body, _, _, F, _ = spheres
+    unit = body / 0.5
+    inner = (0.999 * unit).astype(np.float32)  # under the outer layer everywhere, by ~1 mm: not beyond it
+    outer, Fo = _turned_fine_sphere(1.0)
+    anchors = body_anchors(inner, body)
+    assert layer_beyond_pct(inner[None], anchors, body[None], outer[None], Fo) == 0.0
+    (u, _), report = untangle_layers([inner[None], outer[None]], [F, Fo], [anchors, body_anchors(outer, body)], body[None], F, GAP,
+                                     [FLOOR, FLOOR + GAP])
+    r = np.linalg.norm(u[0], axis=1)
+    # the gap under the faceted outer sphere (its faces dip ~0.3 mm inside radius 1), no deeper
+    assert report.moved[0] == len(inner) and (r <= 1.0 - GAP + 1e-4).all() and (r >= 1.0 - GAP - 1e-3).all()
+
+
+
+def test_the_rim_is_the_border_and_rings_in_from_it(spheres):
+    from inference.layers import RIM_RINGS, _rim
+
+    _, _, outer, F, _ = spheres
+    Fo = F[~(outer[F][:, :, 2] > 0.75).any(1)]  # a hole: its border is the rim
+    e = np.sort(Fo[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    keys, count = np.unique(e, axis=0, return_counts=True)
+    border = np.zeros(len(outer), bool)
+    border[keys[count == 1].ravel()] = True
+    rim = _rim(Fo, len(outer))
+    rings = np.zeros(len(outer), bool)
+    grown = _rings(Fo, border[: int(Fo.max()) + 1], RIM_RINGS)
+    rings[: len(grown)] = grown
+    np.testing.assert_array_equal(rim, rings)
+    assert border.sum() > 10 and not rim.flags.writeable
