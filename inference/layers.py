@@ -24,9 +24,11 @@ N - 1, then N - 3 under both, ...); for inner layer i, per frame, a sink depth s
       layer's rim, where a tucked-in layer blouses out over it), leaves layer i (crosses one of its
       faces from back to front: layer i lies just outside o) sinks that face's corners by the
       crossing's distance past o plus the gap;
-  (b) an inner vertex whose anchor segment, continued by the gap past the vertex, crosses an outer
-      layer at distance s from the anchor (segment length L) sinks by L + gap - s: to the gap
-      under it (beyond the outer layer, or under it by less than the gap);
+  (b) an inner vertex whose anchor segment, continued past the vertex by e = gap / cos (cos: the
+      segment's angle to the skin's normal at the anchor, at least MIN_SINK_COS: the gap is a
+      height over the skin), crosses an outer layer at distance s from the anchor (segment length
+      L) sinks by L + e - s: to the gap under it (beyond the outer layer, or under it by less
+      than the gap);
   then s spreads SPREAD_RINGS rings over the inner mesh, times SPREAD_DECAY per ring (a dent's rim
   slopes instead of stepping), and each vertex moves by s against its anchor direction averaged
   over its one-ring (RAY_SMOOTHING times: neighbours anchored on different body parts, under the
@@ -392,10 +394,14 @@ def untangle_layers(
         layers_kernels.anchor_segments(p, np.ascontiguousarray(body), np.ascontiguousarray(anchors[i], np.int64), a, seg, L)
         sink = np.zeros((T, N))
         t_hit = np.full((T, N), 2.0)
-        # (b)'s segments reach gap_m past the vertex: one under an outer layer by less than the
-        # gap sinks too, to the gap under it (L_reach (1 - t) = L + gap - the crossing's distance)
-        L_reach = L + gap_m
-        past = p + seg * (gap_m / np.maximum(L, 1e-12))[..., None]
+        # (b)'s segments reach the gap past the vertex: one under an outer layer by less than the
+        # gap sinks too, to the gap under it (L_reach (1 - t) = L + ext - the crossing's distance)
+        n = anchor_normals(body, body_faces, anchors[i])
+        # the gap is a height over the skin, as the floors are: gap / cos along a segment at an
+        # angle to the skin's normal (at least MIN_SINK_COS)
+        ext = gap_m / np.maximum(np.einsum("tnc,tnc->tn", seg, n) / np.maximum(L, 1e-12), MIN_SINK_COS)
+        L_reach = L + ext
+        past = p + seg * (ext / np.maximum(L, 1e-12))[..., None]
         grids = {}
         for j in range(i + 1, len(out)):
             # (a) the outer layer's vertices with this layer just outside them: the corners of the
@@ -428,7 +434,6 @@ def untangle_layers(
             continue
         sink = _spread(sink, faces[i])
         hit = sink > 0
-        n = anchor_normals(body, body_faces, anchors[i])
         # down the anchor rays averaged with their one-ring, RAY_SMOOTHING times, no deeper than the
         # floor: the height (p - a) . n over the skin drops by depth * (ray . n) (compiled)
         A = _ring_matrix(faces[i], N)

@@ -55,7 +55,7 @@ MODEL_VERSIONS = {
     "guard": "plane-push-v5",  # v4: closest-triangle check after the push (options.collisions 'check' and 'exact'); v5: an outfit's learned canonical garment planned on its static form (session 46)
     "guard_plain": "plane-push-v4",  # options.collisions 'push': the push alone (v3: farther limbs; v4: as guard v5)
     "repair": "winding-repair-v5",  # options.collisions 'exact', the default (inference/repair.py); v2: the outermost layer 2 mm off the skin; v3: inner layers kept under the outer ones; v4: the targets' skin normals in float64 (moves within 0.5 um of v3); v5: inner layers kept under the outer moves, sides held across frames, neighbours kept together, an inner layer's far look within 5 cm (sessions 40-47)
-    "layers": "anchor-sink-v3",  # outfits of several garments, collisions not 'off' (inference/layers.py); v3: the gap kept in step (b), the rim looked past farther (session 48)
+    "layers": "anchor-sink-v3",  # outfits of several garments, collisions not 'off' (inference/layers.py); v3: step (b) keeps the gap, a height over the skin; the rim looked past farther (session 48)
     "arms": "shoulder-lift-v2",  # options.lift_arms, the default (inference/motion/self_contact.py); v2: 10 mm clearance
 }
 

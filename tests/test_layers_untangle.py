@@ -227,3 +227,34 @@ def test_the_rim_is_the_border_and_rings_in_from_it(spheres):
     rings[: len(grown)] = grown
     np.testing.assert_array_equal(rim, rings)
     assert border.sum() > 10 and not rim.flags.writeable
+
+
+def _sheet(n: int, spacing: float, z: float, shift=(0.0, 0.0), turn: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A flat n x n grid of squares (two triangles each, facing +z) at height z, metres."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    xy = np.stack([i.ravel(), j.ravel()], 1) * spacing - 0.5 * (n - 1) * spacing
+    c, s = np.cos(turn), np.sin(turn)
+    xy = xy @ np.array([[c, s], [-s, c]]) + np.asarray(shift)
+    v = np.concatenate([xy, np.full((n * n, 1), z)], 1).astype(np.float32)
+    q = (i[:-1, :-1] * n + j[:-1, :-1]).ravel()
+    faces = np.concatenate([np.stack([q, q + n, q + n + 1], 1), np.stack([q, q + n + 1, q + 1], 1)])
+    return v, faces.astype(np.int64)
+
+
+def test_the_gap_is_a_height_over_the_skin_along_an_oblique_anchor_segment():
+    """Inner vertices 1 mm under a flat outer layer, each anchored 1 cm to the side (segments at
+    ~22 degrees to the skin): they sink until they lie the gap under it in height over the skin,
+    not the gap along their segment (which would leave them ~1.1 mm under it)."""
+    body, body_faces = _sheet(21, 0.01, 0.0)
+    inner, inner_faces = _sheet(21, 0.01, 0.004)
+    outer, outer_faces = _sheet(40, 0.007, 0.005, shift=(0.0013, 0.0007), turn=0.01)
+    n = 21
+    anchors = np.arange(n * n) - n  # the body vertex one row back: 1 cm along x
+    keep = anchors >= 0
+    anchors[~keep] += n  # the first row: its own (vertical)
+    (u, _), report = untangle_layers([inner[None], outer[None]], [inner_faces, outer_faces], [anchors, body_anchors(outer, body)],
+                                     body[None], body_faces, GAP, [0.001, 0.004])
+    inside = keep & (np.abs(inner[:, :2]) < 0.07).all(1)  # away from the sheets' borders
+    z = u[0][inside, 2]
+    assert report.moved[0] >= inside.sum()
+    np.testing.assert_allclose(z, 0.005 - GAP, atol=2e-4)
