@@ -89,9 +89,9 @@ STAND_IN_SLACK_M = 0.05
 RAY_SMOOTHING = 3
 # Step (a) looks this far past the outer layer's vertices on its rim and RIM_RINGS rings in from it:
 # an inner garment tucked under it (a shirt in trousers) blouses out over the waistband, 1-8 cm off
-# the skin. On 02_02 (validation, neutral) the tucked shirt's intersecting pairs with the trousers
-# fall from 108 to 46 a frame (2 cm everywhere: 108; 8 cm everywhere: 23, but the crop top under
-# the shirt 274 -> 301); every other validation outfit the same or fewer.
+# the skin. On 02_02 (validation, neutral; step (b)'s gap then along the segment) the tucked shirt's
+# intersecting pairs with the trousers fell from 108 to 46 a frame (2 cm everywhere: 108; 8 cm
+# everywhere: 23, but the crop top under the shirt 274 -> 301); every other outfit the same or fewer.
 RIM_REACH_M = 0.08
 RIM_RINGS = 2
 # A vertex nearer its anchor than this lies on the skin (step (c) with an outer layer crossing at
